@@ -363,6 +363,9 @@ def operator_diagnostics(T: np.ndarray, operator: CancellationOperator) -> dict:
 
 #: share of negative samples in a bounce past which a warning is raised
 NEGATIVE_WARN = 0.01
+#: a sample counts as negative below -NEGATIVE_FLOOR * max|L|: float32 rounding of
+#: EXR data (~1e-7 relative, mildly amplified by C1) is not a physical fault
+NEGATIVE_FLOOR = 1e-6
 #: closure error past which a warning is raised
 CLOSURE_WARN = 1e-10
 
@@ -371,22 +374,28 @@ def decomposition_diagnostics(photo: np.ndarray, decomposition: Decomposition) -
     """Closure error, bounce energies and negative shares of one decomposition.
 
     ``closure_error`` is ``||L - sum Ln - rN|| / ||L||`` (must be at rounding level);
-    ``negative_share[n]`` the fraction of samples of bounce n+1 below zero (physical
-    bounce images are non-negative; noise in T makes some negative).
+    ``negative_share[n]`` the fraction of samples of bounce n+1 below
+    ``-NEGATIVE_FLOOR * max|L|`` (physical bounce images are non-negative; noise in T
+    makes some negative), ``most_negative[n]`` its smallest value over ``max|L|``.
     """
     photo = np.asarray(photo, dtype=np.float64)
     total = np.linalg.norm(photo)
+    peak = float(np.abs(photo).max()) or 1.0
     rebuilt = decomposition.bounces.sum(axis=0) + decomposition.residual
     closure = float(np.linalg.norm(photo - rebuilt) / total) if total > 0 else 0.0
     axes = tuple(range(1, decomposition.bounces.ndim))
-    negative = (decomposition.bounces < 0).mean(axis=axes)
+    negative = (decomposition.bounces < -NEGATIVE_FLOOR * peak).mean(axis=axes)
+    most_negative = np.minimum(decomposition.bounces.min(axis=axes) / peak, 0.0)
     residual_share = float(np.linalg.norm(decomposition.residual) / total) if total > 0 else 0.0
     warnings = []
     if closure > CLOSURE_WARN:
         warnings.append(f"closure error {closure:.3g} > {CLOSURE_WARN:.0e}: the decomposition lost light")
     for n, share in enumerate(negative, start=1):
         if share > NEGATIVE_WARN:
-            warnings.append(f"bounce {n}: {share:.1%} of samples are negative (noise in T or in the photo)")
+            warnings.append(
+                f"bounce {n}: {share:.1%} of samples are negative, down to {most_negative[n - 1]:.3g} of the "
+                "photo's peak (noise in T or in the photo)"
+            )
     if decomposition.stopped_early:
         stop = f"stopped after bounce {decomposition.count}: ||Ln||/||L|| < tol = {decomposition.tol:g}"
     else:
@@ -400,5 +409,6 @@ def decomposition_diagnostics(photo: np.ndarray, decomposition: Decomposition) -
         "residual_share": residual_share,
         "closure_error": closure,
         "negative_share": negative.tolist(),
+        "most_negative": most_negative.tolist(),
         "warnings": warnings,
     }

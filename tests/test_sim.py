@@ -83,7 +83,7 @@ def _gauss_legendre_form_factor(geometry, i, j, half, order=12):
 def test_box_form_factors_match_quadrature():
     scene = make_scene("box", 48)
     g = scene.geometry
-    n = scene.layout[0]
+    n = scene.layout[1]  # (3n, n): three n x n faces stacked
     far = np.nonzero((g.facet == 1) & (g.centre[:, 0] > 0.5) & (g.centre[:, 1] > 0.5))[0][0]
     wall = np.nonzero((g.facet == 0) & (g.centre[:, 2] > 0.5))[0][0]
     assert g.form_factors[far, wall] == pytest.approx(_gauss_legendre_form_factor(g, far, wall, 0.5 / n), rel=1e-6)

@@ -189,12 +189,13 @@ _BOX_FACES = ((1, 2, 0, True), (2, 0, 1, False), (0, 2, 1, False))
 def box_geometry(n: int, albedo: float):
     """Three inside faces of the unit cube's corner (walls y = 0, floor z = 0, wall x = 0), n x n patches each.
 
-    Points are in scanline order of the (n, 3n) layout, the three faces side by
-    side as the camera sees them (left wall y = 0, floor, right wall x = 0).  Form
+    Points are in scanline order of the (3n, n) layout: the three faces stacked,
+    left wall y = 0, floor, right wall x = 0, so T has 3 x 3 blocks of n^2 x n^2,
+    one per pair of faces (paper Fig. 8).  Form
     factors are exact (:func:`rectangle_exchange`); the faces never occlude each other.
     """
     cells = (np.arange(n) + 0.5) / n
-    rows, faces, cols = np.meshgrid(np.arange(n), np.arange(3), np.arange(n), indexing="ij")
+    faces, rows, cols = np.meshgrid(np.arange(3), np.arange(n), np.arange(n), indexing="ij")
     rows, faces, cols = rows.ravel(), faces.ravel(), cols.ravel()
     centre = np.zeros((3 * n * n, 3))
     normal_axis = np.array([_BOX_FACES[f][0] for f in faces])
@@ -220,7 +221,7 @@ def box_geometry(n: int, albedo: float):
                         albedo=np.full(len(centre), albedo), form_factors=k / area[:, None],
                         visible=np.arange(len(centre)), occluders=occluders)
     samples, frame_shape = _perspective_samples(centre, occluders.reshape(-1, 3))
-    return geometry, samples, frame_shape, (n, 3 * n)
+    return geometry, samples, frame_shape, (3 * n, n)
 
 
 def _perspective_samples(points: np.ndarray, extent: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:

@@ -1,0 +1,3 @@
+from ilt.cli import main
+
+main()

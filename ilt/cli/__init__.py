@@ -1,0 +1,72 @@
+"""The ``ilt`` command line: thin wrappers that parse, call a library function, report.
+
+Exit codes: 0 success; 1 bad input or data (a one-line reason naming the file on
+stderr); 2 usage error; 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import click
+
+from ilt import __version__
+
+EXIT_CODES = """\b
+Exit codes:
+  0    success
+  1    bad input or data: one line on stderr names the file and the fault
+  2    usage error (unknown option, missing argument)
+  130  interrupted (Ctrl-C); nothing partial is left behind"""
+
+
+class IltError(click.ClickException):
+    """A bad input or data: one line on stderr, exit code 1."""
+
+    def show(self, file=None) -> None:
+        click.echo(f"ilt: error: {self.message}", err=True)
+
+
+class IltGroup(click.Group):
+    """Turns known failures into exit code 1 and Ctrl-C into 130, for every command."""
+
+    def invoke(self, ctx):
+        from ilt.errors import USER_ERRORS
+
+        try:
+            return super().invoke(ctx)
+        except USER_ERRORS as exc:
+            raise IltError(str(exc)) from None
+        except KeyboardInterrupt:
+            click.echo("ilt: interrupted", err=True)
+            raise click.exceptions.Exit(130) from None
+
+
+@click.group(cls=IltGroup, epilog=EXIT_CODES, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="ilt")
+@click.option("-v", "--verbose", count=True, help="Debug detail in the log on stderr.")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr.")
+def cli(verbose: int, quiet: bool) -> None:
+    """Inverse light transport: split photos of a scene into 1-, 2-, 3-...-bounce images.
+
+    Implements Seitz, Matsushita & Kutulakos, "A Theory of Inverse Light Transport"
+    (ICCV 2005). Data goes to files, the paths written go to stdout, logs go to stderr.
+    """
+    level = logging.ERROR if quiet else logging.DEBUG if verbose else logging.INFO
+    logging.basicConfig(level=level, format="ilt: %(levelname)s: %(message)s", stream=sys.stderr, force=True)
+
+
+def _register() -> None:
+    from ilt.cli import bench, decompose, demo, simulate
+
+    for module in (simulate, decompose, demo, bench):
+        cli.add_command(module.command)
+
+
+_register()
+
+
+def main() -> None:
+    """Console entry point."""
+    cli(prog_name="ilt")

@@ -1,0 +1,41 @@
+"""``ilt decompose``: photos to n-bounce images."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from ilt.cli.options import bounces_option, emit, force_option, json_option, output_option
+
+
+@click.command("decompose")
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--isf", "isf_path", default="isf", show_default=True, type=click.Path(),
+              help="ISF directory (T.npy, samples.csv, manifest.json) or a T .npy file.")
+@output_option
+@bounces_option
+@click.option("--tol", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="Stop once ||Ln|| / ||L|| < TOL for every input column (0: compute all N).")
+@click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
+              help="Where factorised operators are kept between runs "
+                   "(default $ILT_CACHE_DIR, else $XDG_CACHE_HOME/ilt).")
+@click.option("--no-cache", is_flag=True, help="Do not read or write the operator cache.")
+@force_option
+@json_option
+def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, force, as_json):
+    """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
+
+    INPUT is an EXR photo (read at the ISF's sample pixels) or a .npy of sample
+    vectors, shape (m,) or (m, k). Results go to OUTPUT/<input stem>/: bounces.npy
+    (N, m[, k]), residual.npy, one EXR per bounce plus indirect and residual (a strip
+    or grid in the ISF's layout; frames also splatted as *.frame.exr), preview.png and
+    summary.json with the diagnostics.
+    """
+    from ilt.decompose import decompose, default_cache_dir
+    from ilt.isf import load_isf
+
+    isf = load_isf(isf_path)
+    cache = None if no_cache else (Path(cache_dir) if cache_dir else default_cache_dir())
+    summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache, force=force)
+    emit(as_json, summaries, [s["output"] for s in summaries])

@@ -1,0 +1,31 @@
+"""Options shared by several commands, defined once so they mean the same everywhere."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import click
+
+force_option = click.option("--force", is_flag=True, help="Replace outputs that already exist.")
+json_option = click.option(
+    "--json", "as_json", is_flag=True, help="Print a machine-readable JSON summary on stdout."
+)
+output_option = click.option(
+    "-o", "--output", "output", required=True, type=click.Path(file_okay=False),
+    help="Directory to write (created; must not exist unless --force).",
+)
+bounces_option = click.option(
+    "--bounces", "n_bounces", type=click.IntRange(min=1), default=8, show_default=True,
+    help="Number of bounce images N to compute.",
+)
+
+
+def emit(as_json: bool, summary, paths: list[str]) -> None:
+    """What a pipe needs goes to stdout: the JSON summary, or the paths written."""
+    if as_json:
+        json.dump(summary, sys.stdout, indent=2, default=str)
+        sys.stdout.write("\n")
+    else:
+        for p in paths:
+            click.echo(p)

@@ -1,0 +1,236 @@
+"""The decompose stage: photos (EXR frames or sample vectors) to n-bounce images.
+
+Operators are built once per ISF and cached on disk, keyed by the fingerprint of T,
+so decomposing the next photo of the same scene costs only the solves.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ilt.imageio import ImageError, read_exr, write_exr
+from ilt.isf import ISF
+from ilt.layout import sample_frame, splat, vector_to_image
+from ilt.manifest import fingerprint_array, fingerprint_file, save_npy, staged_directory, write_json, write_manifest
+from ilt.preview import bounce_panel
+from ilt.transport import (
+    CancellationOperator,
+    TransportError,
+    bounce_images,
+    cancellation_operator,
+    decomposition_diagnostics,
+    operator_diagnostics,
+)
+
+log = logging.getLogger(__name__)
+
+_CACHE_ARRAYS = ("factors", "perm", "t1_unit", "column_norms")
+
+
+class InputError(ValueError):
+    """A photo that cannot be decomposed with the ISF at hand; names the file."""
+
+
+def default_cache_dir() -> Path:
+    """``$ILT_CACHE_DIR``, else ``$XDG_CACHE_HOME/ilt``, else ``~/.cache/ilt``."""
+    if os.environ.get("ILT_CACHE_DIR"):
+        return Path(os.environ["ILT_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "ilt"
+
+
+def load_operator(T: np.ndarray, cache_dir: Path | None) -> tuple[CancellationOperator, dict]:
+    """``C1`` for ``T`` and its diagnostics, from the cache when T was seen before.
+
+    Returns the operator and the diagnostics dict (with ``"cached": bool`` and
+    ``"fingerprint"``).
+    """
+    key = fingerprint_array(np.asarray(T)).split(":", 1)[1]
+    entry = cache_dir / "operators" / key if cache_dir is not None else None
+    if entry is not None and (entry / "diagnostics.json").exists():
+        try:
+            arrays = {name: np.load(entry / f"{name}.npy", allow_pickle=False) for name in _CACHE_ARRAYS}
+            diagnostics = json.loads((entry / "diagnostics.json").read_text())
+            op = CancellationOperator(
+                factors=np.asfortranarray(arrays["factors"]), perm=arrays["perm"], t1_unit=arrays["t1_unit"],
+                column_norms=arrays["column_norms"], rcond=diagnostics["rcond"],
+            )
+            log.info("operators for T %s… read from the cache %s", key[:12], entry)
+            return op, {**diagnostics, "cached": True}
+        except (OSError, ValueError, KeyError) as exc:
+            log.warning("ignoring unreadable operator cache %s (%s); rebuilding", entry, exc)
+    log.info("factorising T (m = %d)", T.shape[0])
+    op = cancellation_operator(T)
+    diagnostics = {**operator_diagnostics(T, op), "rcond": op.rcond, "fingerprint": "sha256:" + key}
+    if entry is not None:
+        try:
+            with staged_directory(entry, force=True) as tmp:
+                for name in _CACHE_ARRAYS:
+                    save_npy(tmp / f"{name}.npy", getattr(op, name))
+                write_json(tmp / "diagnostics.json", diagnostics)
+        except OSError as exc:
+            log.warning("could not cache the operators in %s (%s)", entry, exc)
+    return op, {**diagnostics, "cached": False}
+
+
+@dataclass(frozen=True)
+class Photo:
+    """One input: its sample vector(s) and how to show results.
+
+    values : (m,) or (m, k) float64; channels : names of the k columns (or None);
+    frame : True when it came from a camera frame (results are also splatted back).
+    """
+
+    name: str
+    path: Path
+    values: np.ndarray
+    channels: list[str] | None
+    frame: bool
+
+
+def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
+    """Read an EXR frame (sampled at the ISF's sample pixels) or a ``.npy`` of sample
+    vectors, shape (m,) or (m, k)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path}: not a readable .npy array ({exc})") from None
+        if values.ndim not in (1, 2) or values.shape[0] != isf.m:
+            raise InputError(
+                f"{path}: shape {values.shape} does not match the ISF's m = {isf.m} samples "
+                f"(expected ({isf.m},) or ({isf.m}, k))"
+            )
+        if not np.issubdtype(values.dtype, np.number):
+            raise InputError(f"{path}: dtype {values.dtype} is not numeric")
+        values = values.astype(np.float64)
+        channels, frame = None, False
+    elif suffix == ".exr":
+        if isf.samples is None:
+            raise InputError(f"{path}: an EXR photo needs the ISF's samples.csv to know which pixels to read")
+        try:
+            image, attrs = read_exr(path)
+        except ImageError as exc:
+            raise InputError(str(exc)) from None
+        if isf.frame_shape is not None and tuple(image.shape[:2]) != tuple(isf.frame_shape):
+            raise InputError(
+                f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, the ISF was captured at "
+                f"{isf.frame_shape[1]} x {isf.frame_shape[0]}"
+            )
+        try:
+            values = sample_frame(image, isf.samples).astype(np.float64)
+        except ValueError as exc:
+            raise InputError(f"{path}: {exc}") from None
+        channels = list(attrs.get("channels", []))
+        if values.ndim == 2 and values.shape[1] == 1:
+            values = values[:, 0]
+        frame = True
+    else:
+        raise InputError(f"{path}: unsupported input type '{suffix}' (use .exr frames or .npy sample vectors)")
+    if not np.all(np.isfinite(values)):
+        i = int(np.argwhere(~np.isfinite(values))[0][0])
+        raise InputError(f"{path}: sample {i} is not finite")
+    return Photo(name=path.stem, path=path, values=values, channels=channels or None, frame=frame)
+
+
+def _images(values: np.ndarray, isf: ISF, frame: bool) -> dict[str, np.ndarray]:
+    """The picture(s) of a sample vector: ``layout`` always, ``frame`` for frame inputs."""
+    out = {"layout": vector_to_image(values, isf.layout)}
+    if frame:
+        out["frame"] = splat(values, isf.samples, isf.frame_shape)
+    return out
+
+
+def write_decomposition(
+    directory: Path, photo: Photo, isf: ISF, decomposition, diagnostics: dict,
+) -> None:
+    """Fill ``directory`` with one photo's results (see docs/formats.md)."""
+    save_npy(directory / "bounces.npy", decomposition.bounces)
+    save_npy(directory / "residual.npy", decomposition.residual)
+    named = {"photo": photo.values}
+    named.update({f"bounce-{n}": b for n, b in enumerate(decomposition.bounces, start=1)})
+    named["indirect"] = decomposition.indirect
+    named["residual"] = decomposition.residual
+    channels = photo.channels
+    for name, values in named.items():
+        for kind, image in _images(values, isf, photo.frame).items():
+            suffix = "" if kind == "layout" else ".frame"
+            write_exr(directory / f"{name}{suffix}.exr", image, channels=channels,
+                      attributes={"ilt:source": str(photo.path.name), "ilt:quantity": name})
+    first = (lambda v: v) if photo.values.ndim == 1 else (lambda v: v[:, 0])
+    panels = {"photo": first(photo.values)}
+    panels.update({f"L{n}": first(b) for n, b in enumerate(decomposition.bounces, start=1)})
+    panels["indirect"] = first(decomposition.indirect)
+    bounce_panel(directory / "preview.png", {k: vector_to_image(v, isf.layout) for k, v in panels.items()})
+    write_json(directory / "summary.json", diagnostics)
+
+
+def decompose(
+    isf: ISF,
+    inputs: list[str | os.PathLike],
+    out: str | os.PathLike,
+    n_bounces: int = 8,
+    tol: float = 0.0,
+    cache_dir: Path | None = None,
+    force: bool = False,
+) -> list[dict]:
+    """Decompose every input into ``out/<stem>/``; returns one summary per input.
+
+    All inputs are read and checked before anything is written, so a bad input leaves
+    no output behind.
+    """
+    photos = [read_photo(p, isf) for p in inputs]
+    stems = [p.name for p in photos]
+    if len(set(stems)) != len(stems):
+        raise InputError(f"two inputs share a name ({stems}); their results would collide in {out}")
+    out = Path(out)
+    for stem in stems:
+        if (out / stem).exists() and not force:
+            raise InputError(f"{out / stem} exists; use --force to replace it")
+    try:
+        op, op_diag = load_operator(isf.T, cache_dir)
+    except TransportError as exc:
+        raise TransportError(f"{isf.path}: {exc}") from None
+    for w in op_diag["warnings"]:
+        log.warning("%s: %s", isf.path, w)
+    created = not out.exists()
+    summaries = []
+    try:
+        for photo in photos:
+            dec = bounce_images(op, photo.values, n_bounces=n_bounces, tol=tol)
+            diag = decomposition_diagnostics(photo.values, dec)
+            for w in diag["warnings"]:
+                log.warning("%s: %s", photo.path, w)
+            summary = {
+                "input": str(photo.path),
+                "input_fingerprint": fingerprint_file(photo.path),
+                "isf": str(isf.path),
+                "operators": op_diag,
+                "decomposition": diag,
+            }
+            with staged_directory(out / photo.name, force=force) as tmp:
+                write_decomposition(tmp, photo, isf, dec, summary)
+                write_manifest(
+                    tmp, "decompose", {"bounces": n_bounces, "tol": tol},
+                    inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): op_diag["fingerprint"]},
+                )
+            log.info("%s -> %s (%s)", photo.path, out / photo.name, diag["stop_reason"])
+            summaries.append({**summary, "output": str(out / photo.name)})
+    except BaseException:
+        if created and out.exists() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+    return summaries
+
+
+__all__ = ["decompose", "read_photo", "load_operator", "InputError", "TransportError", "default_cache_dir"]

@@ -1,0 +1,66 @@
+"""The simulate stage: a synthetic scene written as an ISF directory with ground truth.
+
+Layout of the directory (docs/formats.md)::
+
+    T.npy  samples.csv  manifest.json          the ISF, as build-isf writes it
+    photos/<kind>.npy  photos/<kind>.exr       photos: sample vectors and camera frames
+    truth/A.npy  truth/T1.npy                  true transport and diag(T1) for unit columns
+    truth/isf-bounces.npy                      (N, m, m) true n-bounce ISFs (m <= 2048)
+    truth/photos/<kind>-bounces.npy            (N, m) true bounces of each photo
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ilt.imageio import write_exr
+from ilt.isf import write_isf
+from ilt.layout import splat
+from ilt.manifest import save_npy, staged_directory, write_manifest
+from ilt.sim import ILLUMINATIONS, Scene
+
+#: the largest m for which the (N, m, m) true n-bounce ISFs are written
+TRUTH_ISF_MAX_M = 2048
+
+
+def write_simulation(
+    scene: Scene,
+    out: str | os.PathLike,
+    parameters: dict,
+    n_bounces: int = 8,
+    max_bounces: int | None = None,
+    force: bool = False,
+) -> Path:
+    """Write ``scene`` as an ISF directory at ``out`` (atomically).
+
+    ``max_bounces`` renders T with the paper's forward tracer truncated at that many
+    bounces (the paper used 7); None gives the exact T.
+    """
+    out = Path(out)
+    T, scale = scene.isf(max_bounces=max_bounces)
+    with staged_directory(out, force=force) as tmp:
+        fields = write_isf(tmp, T, scene.samples, scene.layout, scene.frame_shape)
+        truth = tmp / "truth"
+        (truth / "photos").mkdir(parents=True)
+        (tmp / "photos").mkdir()
+        save_npy(truth / "A.npy", scene.A)
+        save_npy(truth / "T1.npy", scene.direct / scale)
+        if scene.m <= TRUTH_ISF_MAX_M:
+            save_npy(truth / "isf-bounces.npy", scene.bounce_isfs(n_bounces))
+        for kind in ILLUMINATIONS:
+            photo, bounces = scene.photo(kind, n_bounces=n_bounces)
+            save_npy(tmp / "photos" / f"{kind}.npy", photo)
+            write_exr(
+                tmp / "photos" / f"{kind}.exr", splat(photo, scene.samples, scene.frame_shape),
+                attributes={"ilt:scene": scene.name, "ilt:illumination": kind},
+            )
+            save_npy(truth / "photos" / f"{kind}-bounces.npy", bounces)
+        write_manifest(
+            tmp, "simulate",
+            {**parameters, "truth_bounces": n_bounces, "tracer_bounces": max_bounces},
+            extra=fields,
+        )
+    return out

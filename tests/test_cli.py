@@ -1,0 +1,179 @@
+"""The command line end to end: outputs against the simulator's truth, errors, exit codes."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ilt.cli import cli
+from ilt.evaluate import relative_errors
+from ilt.imageio import read_exr, write_exr
+
+
+def run(*args, ok=True):
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    if ok:
+        assert result.exit_code == 0, result.output + repr(result.exception)
+    return result
+
+
+@pytest.fixture(scope="module")
+def isf_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "isf"
+    result = run("simulate", "m", "--beams", 64, "-o", out)
+    assert result.stdout.strip() == str(out)
+    return out
+
+
+def test_simulate_writes_an_isf_directory(isf_dir):
+    T = np.load(isf_dir / "T.npy")
+    assert T.shape == (64, 64) and T.dtype == np.float64
+    np.testing.assert_allclose(np.linalg.norm(T, axis=0), 1, rtol=1e-14)
+    manifest = json.loads((isf_dir / "manifest.json").read_text())
+    assert manifest["stage"] == "simulate" and manifest["layout"] == [1, 64]
+    assert "T.npy" in manifest["outputs"] and manifest["outputs"]["T.npy"].startswith("sha256:")
+    header = (isf_dir / "samples.csv").read_text().splitlines()[0]
+    assert header == "beam,x,y"
+    for kind in ("flashlight", "room", "projector"):
+        assert (isf_dir / "photos" / f"{kind}.exr").exists()
+        assert (isf_dir / "truth" / "photos" / f"{kind}-bounces.npy").exists()
+
+
+def test_decompose_npy_matches_truth_and_reuses_operators(isf_dir, tmp_path):
+    cache = tmp_path / "cache"
+    out = tmp_path / "out"
+    photo = isf_dir / "photos" / "room.npy"
+    result = run("decompose", "--isf", isf_dir, photo, "-o", out, "--cache-dir", cache, "--json")
+    summary = json.loads(result.stdout)[0]
+    assert summary["operators"]["cached"] is False
+    bounces = np.load(out / "room" / "bounces.npy")
+    truth = np.load(isf_dir / "truth" / "photos" / "room-bounces.npy")
+    assert bounces.shape == (8, 64)
+    assert relative_errors(bounces, truth).max() < 1e-10
+    residual = np.load(out / "room" / "residual.npy")
+    L = np.load(photo)
+    assert np.linalg.norm(L - bounces.sum(0) - residual) <= 1e-12 * np.linalg.norm(L)
+    for name in ["bounce-1", "bounce-8", "indirect", "residual", "photo"]:
+        image, attrs = read_exr(out / "room" / f"{name}.exr")
+        assert image.shape == (1, 64, 1)
+    np.testing.assert_allclose(read_exr(out / "room" / "bounce-2.exr")[0][0, :, 0], bounces[1], rtol=1e-6)
+    assert (out / "room" / "preview.png").stat().st_size > 0
+    # the second photo reuses the factorised operators
+    result = run("decompose", "--isf", isf_dir, isf_dir / "photos" / "flashlight.npy", "-o", out,
+                 "--cache-dir", cache, "--json")
+    assert json.loads(result.stdout)[0]["operators"]["cached"] is True
+
+
+def test_decompose_exr_frame(isf_dir, tmp_path):
+    out = tmp_path / "out"
+    run("decompose", "--isf", isf_dir, isf_dir / "photos" / "projector.exr", "-o", out, "--no-cache")
+    bounces = np.load(out / "projector" / "bounces.npy")
+    truth = np.load(isf_dir / "truth" / "photos" / "projector-bounces.npy")
+    # EXR stores float32: the photo carries ~6e-8 relative rounding, amplified mildly by C1.
+    assert relative_errors(bounces[:4], truth[:4]).max() < 1e-5
+    frame, _ = read_exr(out / "projector" / "bounce-1.frame.exr")
+    photo, _ = read_exr(isf_dir / "photos" / "projector.exr")
+    assert frame.shape == photo.shape
+
+
+def test_tol_stops_early_and_reports(isf_dir, tmp_path):
+    result = run("decompose", "--isf", isf_dir, isf_dir / "photos" / "room.npy", "-o", tmp_path / "o",
+                 "--bounces", 40, "--tol", 1e-4, "--no-cache", "--json")
+    dec = json.loads(result.stdout)[0]["decomposition"]
+    assert dec["stopped_early"] and dec["bounces"] < 40
+    assert dec["relative_norms"][-1] < 1e-4
+
+
+def _bad_isf(tmp_path, T):
+    d = tmp_path / "badisf"
+    d.mkdir()
+    np.save(d / "T.npy", T)
+    return d
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("nonsquare", "square"),
+        ("nan", "non-finite"),
+        ("zero column", "column 2 (beam 2) is all zero"),
+        ("identical", "columns 1 and 3 are identical"),
+        ("length", "does not match the ISF's m = 64"),
+        ("frame", "frame is"),
+        ("missing", "no such file"),
+    ],
+)
+def test_bad_input_fails_cleanly(isf_dir, tmp_path, case, message):
+    isf, photo = isf_dir, isf_dir / "photos" / "room.npy"
+    good = np.load(isf_dir / "T.npy")
+    if case == "nonsquare":
+        isf = _bad_isf(tmp_path, good[:, :-1])
+    elif case == "nan":
+        T = good.copy()
+        T[3, 5] = np.nan
+        isf = _bad_isf(tmp_path, T)
+    elif case == "zero column":
+        T = good.copy()
+        T[:, 2] = 0
+        isf = _bad_isf(tmp_path, T)
+    elif case == "identical":
+        T = good.copy()
+        T[:, 3] = T[:, 1]
+        isf = _bad_isf(tmp_path, T)
+    elif case == "length":
+        photo = tmp_path / "short.npy"
+        np.save(photo, np.ones(63))
+    elif case == "frame":
+        photo = tmp_path / "small.exr"
+        write_exr(photo, np.ones((4, 5), np.float32))
+    elif case == "missing":
+        photo = tmp_path / "nothere.exr"
+    if case not in ("length", "frame", "missing"):
+        photo = tmp_path / "ok.npy"
+        np.save(photo, np.ones(good.shape[0]))
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "ilt", "decompose", "--isf", str(isf), str(photo), "-o", str(out), "--no-cache"],
+        capture_output=True, text=True,
+    )
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    errors = [line for line in lines if line.startswith("ilt: error:")]
+    assert errors == lines[-1:], proc.stderr  # one line, the last, says why
+    assert message in errors[0]
+    named = str(photo) if case in ("length", "frame", "missing") else str(isf)
+    assert named in errors[0]
+    assert not out.exists()
+    assert proc.stdout == ""
+
+
+def test_usage_error_exit_code():
+    proc = subprocess.run([sys.executable, "-m", "ilt", "decompose"], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "Usage" in proc.stderr
+
+
+def test_existing_output_is_kept_without_force(isf_dir, tmp_path):
+    out = tmp_path / "out"
+    photo = isf_dir / "photos" / "room.npy"
+    run("decompose", "--isf", isf_dir, photo, "-o", out, "--no-cache")
+    before = (out / "room" / "bounces.npy").read_bytes()
+    result = run("decompose", "--isf", isf_dir, photo, "-o", out, "--no-cache", ok=False)
+    assert result.exit_code == 1 and "--force" in result.output
+    assert (out / "room" / "bounces.npy").read_bytes() == before
+    run("decompose", "--isf", isf_dir, photo, "-o", out, "--no-cache", "--force", "--bounces", 3)
+    assert np.load(out / "room" / "bounces.npy").shape == (3, 64)
+
+
+def test_demo_quick(tmp_path):
+    result = run("demo", "-o", tmp_path / "demo", "--quick", "--json")
+    results = json.loads(result.stdout)
+    assert [r["scene"] for r in results] == ["m", "box"]
+    for r in results:
+        for row in r["errors"]["exact"]:
+            assert row["mean"] <= 1e-26 and row["max"] <= 1e-24
+        assert (tmp_path / "demo" / r["scene"] / "fig5.png").exists()
+        assert len(r["previews"]) == 3

@@ -163,7 +163,7 @@ def cancellation_operator(T: np.ndarray) -> CancellationOperator:
     # conditioned on unit columns. This is the only m x m copy we make.
     work = np.asfortranarray(T, dtype=np.float64) if T.dtype != np.float64 else np.array(T, order="F")
     work /= norms
-    anorm = float(np.abs(work).sum(axis=0).max())
+    anorm = float(lapack.dlange("1", work))  # max column sum, without an m x m temporary
     factors, piv, info = lapack.dgetrf(work, overwrite_a=1)
     if info > 0:
         raise TransportError(f"T is exactly singular: zero pivot at beam {info - 1}")
@@ -199,20 +199,23 @@ def _permutation_from_pivots(piv: np.ndarray) -> np.ndarray:
 def _inverse_diagonal(factors: np.ndarray, perm: np.ndarray) -> np.ndarray:
     """``diag(T^-1)`` from the inverted factors: ``T^-1 = U^-1 L^-1 P^T``.
 
-    ``(T^-1)[i, i] = sum_k Uinv[i, k] Linv[k, q_i]`` with ``q = argsort(perm)``; done
-    in row blocks so the extra memory is ``m x _DIAG_BLOCK``.
+    ``(T^-1)[i, i] = sum_k Uinv[i, k] Linv[k, q_i]`` with ``q = argsort(perm)``, done in
+    row blocks so the extra memory is ``2 m x _DIAG_BLOCK``. The sums run along
+    contiguous rows so numpy sums pairwise: a plain dot product loses a digit at
+    m = 2048 (T1 error 9e-15 against 1e-15).
     """
     m = perm.shape[0]
     q = np.argsort(perm)
-    rows = np.arange(m)[:, None]
+    cols = np.arange(m)[None, :]
     out = np.empty(m)
     for i0 in range(0, m, _DIAG_BLOCK):
         i1 = min(m, i0 + _DIAG_BLOCK)
         u = np.triu(factors[i0:i1, :], k=i0)  # rows i0..i1 of U^-1
-        cols = q[i0:i1]
-        lower = factors[:, cols]
-        lower = np.where(rows > cols, lower, 0.0) + (rows == cols)  # unit lower L^-1
-        out[i0:i1] = np.einsum("ik,ki->i", u, lower)
+        qi = q[i0:i1, None]
+        # rows q_i of L^-1 transposed, i.e. columns of the unit lower triangular L^-1
+        lower_t = np.ascontiguousarray(factors[:, q[i0:i1]].T)
+        lower_t = np.where(cols > qi, lower_t, 0.0) + (cols == qi)
+        out[i0:i1] = (u * lower_t).sum(axis=1)
     return out
 
 

@@ -131,6 +131,7 @@ def plot(rows: list[BenchRow], path) -> None:
     """Run time against m (log-log) and error against run time, one curve per solver."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import NullFormatter
 
     from ilt.manifest import atomic_path
 
@@ -142,7 +143,10 @@ def plot(rows: list[BenchRow], path) -> None:
                         ("scipy (inv + products)", "scipy_seconds", "scipy_bounce_error")):
         ax1.loglog(ms, [getattr(r, t) for r in rows], "o-", label=label)
         ax2.loglog([getattr(r, t) for r in rows], [max(getattr(r, e), 1e-17) for r in rows], "o-", label=label)
-    ax1.set(xlabel="m (beams)", ylabel="seconds (median)", title="operators + 8 bounces, batch of 16")
+    ax1.set(xlabel="m (beams)", ylabel="seconds (median)",
+            title=f"operators + {rows[0].bounces} bounces, batch of {rows[0].batch}")
+    ax1.set_xticks(ms, labels=[str(m) for m in ms])
+    ax1.xaxis.set_minor_formatter(NullFormatter())
     ax2.set(xlabel="seconds (median)", ylabel="max relative bounce error", title="error against run time")
     for ax in (ax1, ax2):
         ax.grid(True, which="both", alpha=0.3)

@@ -177,3 +177,15 @@ def test_demo_quick(tmp_path):
             assert row["mean"] <= 1e-26 and row["max"] <= 1e-24
         assert (tmp_path / "demo" / r["scene"] / "fig5.png").exists()
         assert len(r["previews"]) == 3
+
+
+def test_bench_writes_figures_with_errors_against_truth(tmp_path):
+    result = run("bench", "--sizes", "48,108", "--repeats", 1, "--batch", 4, "-o", tmp_path / "b", "--json")
+    rows = json.loads(result.stdout)
+    assert [r["m"] for r in rows] == [48, 108]
+    for r in rows:
+        assert r["ilt_bounce_error"] < 1e-12 and r["scipy_bounce_error"] < 1e-12
+        assert r["ilt_t1_error"] < 1e-13
+        assert r["ratio"] == pytest.approx(r["ilt_seconds"] / r["scipy_seconds"])
+    assert json.loads((tmp_path / "b" / "bench.json").read_text())["rows"] == rows
+    assert (tmp_path / "b" / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

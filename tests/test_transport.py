@@ -164,3 +164,17 @@ def test_wrong_length_photo_is_refused():
         bounce_images(op, np.ones(11))
     with pytest.raises(TransportError, match="non-finite"):
         bounce_images(op, np.full(10, np.inf))
+
+
+def test_noise_in_t_is_reported_as_negative_bounces():
+    A, D, T = physical_transport(80, albedo=0.7, seed=6)
+    L = np.linalg.solve(np.eye(80) - A, np.ones(80))
+    noisy = T + np.random.default_rng(0).normal(scale=0.02, size=T.shape) * T.max()
+    dec = bounce_images(cancellation_operator(noisy), L, n_bounces=4)
+    diag = decomposition_diagnostics(L, dec)
+    assert max(diag["negative_share"]) > 0.01
+    assert min(diag["most_negative"]) < 0
+    assert any("negative" in w and "photo's peak" in w for w in diag["warnings"])
+    # the same T without noise: no warning
+    clean = decomposition_diagnostics(L, bounce_images(cancellation_operator(T), L, n_bounces=4))
+    assert clean["negative_share"] == [0.0] * 4 and clean["warnings"] == []

@@ -23,7 +23,7 @@ from ilt import __version__
 MANIFEST = "manifest.json"
 
 
-class StageError(RuntimeError):
+class StageError(ValueError):
     """A stage directory that cannot be written or read as asked."""
 
 

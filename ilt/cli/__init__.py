@@ -21,6 +21,11 @@ Exit codes:
   130  interrupted (Ctrl-C); nothing partial is left behind"""
 
 
+#: bad input or data, as opposed to a bug: every ilt error class derives from ValueError,
+#: and OSError covers missing, unreadable and unwritable files
+USER_ERRORS = (ValueError, OSError)
+
+
 class IltError(click.ClickException):
     """A bad input or data: one line on stderr, exit code 1."""
 
@@ -32,8 +37,6 @@ class IltGroup(click.Group):
     """Turns known failures into exit code 1 and Ctrl-C into 130, for every command."""
 
     def invoke(self, ctx):
-        from ilt.errors import USER_ERRORS
-
         try:
             return super().invoke(ctx)
         except USER_ERRORS as exc:
@@ -58,10 +61,14 @@ def cli(verbose: int, quiet: bool) -> None:
 
 
 def _register() -> None:
-    from ilt.cli import bench, decompose, demo, simulate
+    """Every module of this package with a ``command`` is a subcommand (one module each)."""
+    import importlib
+    import pkgutil
 
-    for module in (simulate, decompose, demo, bench):
-        cli.add_command(module.command)
+    for info in pkgutil.iter_modules(__path__):
+        module = importlib.import_module(f"{__name__}.{info.name}")
+        if isinstance(getattr(module, "command", None), click.Command):
+            cli.add_command(module.command)
 
 
 _register()

@@ -81,30 +81,40 @@ class CancellationOperator:
         """Diagonal of ``T1`` for the column scaling of the ``T`` given (C1 is the same)."""
         return self.t1_unit * self.column_norms
 
+    solver: str = "dense"
+
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """``T_n^-1 b`` for ``b`` of shape (m,) or (m, k); returns float64 of the same shape."""
+        """``T_n^-1 b`` for ``b`` of shape (m,) or (m, k), in the factors' precision;
+        returns float64 of the same shape."""
         vec = b.ndim == 1
-        rhs = np.asfortranarray(b[self.perm].reshape(self.m, -1), dtype=np.float64)
-        y = blas.dtrmm(1.0, self.factors, rhs, lower=1, diag=1, overwrite_b=1)
-        x = blas.dtrmm(1.0, self.factors, y, lower=0, overwrite_b=1)
+        trmm = blas.get_blas_funcs("trmm", (self.factors,))
+        rhs = np.asfortranarray(b[self.perm].reshape(self.m, -1), dtype=self.factors.dtype)
+        y = trmm(1.0, self.factors, rhs, lower=1, diag=1, overwrite_b=1)
+        x = trmm(1.0, self.factors, y, lower=0, overwrite_b=1).astype(np.float64, copy=False)
         return x[:, 0] if vec else x
 
     def apply(self, values: np.ndarray) -> np.ndarray:
         """``C1 L`` for sample vectors ``L`` of shape (m,) or (m, k) (float64)."""
-        self._check(values)
-        x = self.solve(values)
+        check_photo(self.m, values)
         # C1 = T1 T^-1 is invariant to column scaling, so use the unit-column factors.
-        return self.t1_unit[:, None] * x if x.ndim == 2 else self.t1_unit * x
+        return scale_rows(self.t1_unit, self.solve(values))
 
-    def _check(self, values: np.ndarray) -> None:
-        if values.ndim not in (1, 2) or values.shape[0] != self.m:
-            raise TransportError(
-                f"sample vector has shape {values.shape}; the ISF has m = {self.m} "
-                f"samples, so expected ({self.m},) or ({self.m}, k)"
-            )
-        if not np.all(np.isfinite(values)):
-            bad = np.argwhere(~np.isfinite(values))[0]
-            raise TransportError(f"sample vector holds a non-finite value at index {tuple(int(i) for i in bad)}")
+
+def scale_rows(d: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``diag(d) x`` for x of shape (m,) or (m, k)."""
+    return d[:, None] * x if x.ndim == 2 else d * x
+
+
+def check_photo(m: int, values: np.ndarray) -> None:
+    """Refuse sample vectors that do not fit an m-sample ISF or are not finite."""
+    if values.ndim not in (1, 2) or values.shape[0] != m:
+        raise TransportError(
+            f"sample vector has shape {values.shape}; the ISF has m = {m} "
+            f"samples, so expected ({m},) or ({m}, k)"
+        )
+    if not np.all(np.isfinite(values)):
+        bad = np.argwhere(~np.isfinite(values))[0]
+        raise TransportError(f"sample vector holds a non-finite value at index {tuple(int(i) for i in bad)}")
 
 
 def _check_isf(T: np.ndarray) -> np.ndarray:
@@ -135,19 +145,11 @@ def _duplicate_columns(T: np.ndarray) -> tuple[int, int] | None:
     return None
 
 
-def cancellation_operator(T: np.ndarray) -> CancellationOperator:
-    """Build ``C1 = T1 T^-1`` from an ISF matrix (paper Eq. 13).
+def prepare_isf(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Check an ISF matrix and return it with its column 2-norms (m,) float64.
 
-    Parameters
-    ----------
-    T : (m, m) real array
-        Impulse scatter matrix: column j is the image of beam j sampled at the m
-        sample pixels. Any positive column scaling gives the same ``C1``.
-
-    Raises
-    ------
-    TransportError
-        Non-square, non-finite, a zero column, identical columns, or singular ``T``.
+    Raises TransportError for a non-square or non-finite T, a zero column or two
+    identical columns, naming the beam.
     """
     T = _check_isf(T)
     norms = np.sqrt(np.einsum("ij,ij->j", T, T, dtype=np.float64))
@@ -159,23 +161,45 @@ def cancellation_operator(T: np.ndarray) -> CancellationOperator:
         raise TransportError(
             f"T columns {dup[0]} and {dup[1]} are identical (two beams on the same point?): T is singular"
         )
+    return T, norms
+
+
+def cancellation_operator(T: np.ndarray, dtype=np.float64) -> CancellationOperator:
+    """Build ``C1 = T1 T^-1`` from an ISF matrix (paper Eq. 13).
+
+    Parameters
+    ----------
+    T : (m, m) real array
+        Impulse scatter matrix: column j is the image of beam j sampled at the m
+        sample pixels. Any positive column scaling gives the same ``C1``.
+    dtype : np.float64 (default) or np.float32
+        Precision of the factorisation (float32 halves memory and time and gives
+        ``T1`` to about 1e-7 times the condition number; see ilt.solvers "mixed").
+
+    Raises
+    ------
+    TransportError
+        Non-square, non-finite, a zero column, identical columns, or singular ``T``.
+    """
+    T, norms = prepare_isf(T)
     # Equilibrate columns: C1 does not depend on them (paper Sec. 3) and LU is better
     # conditioned on unit columns. This is the only m x m copy we make.
-    work = np.asfortranarray(T, dtype=np.float64) if T.dtype != np.float64 else np.array(T, order="F")
-    work /= norms
-    anorm = float(lapack.dlange("1", work))  # max column sum, without an m x m temporary
-    factors, piv, info = lapack.dgetrf(work, overwrite_a=1)
+    work = np.array(T, dtype=dtype, order="F")
+    work /= norms.astype(dtype)
+    getrf, gecon, trtri, lange = lapack.get_lapack_funcs(("getrf", "gecon", "trtri", "lange"), (work,))
+    anorm = float(lange("1", work))  # max column sum, without an m x m temporary
+    factors, piv, info = getrf(work, overwrite_a=1)
     if info > 0:
         raise TransportError(f"T is exactly singular: zero pivot at beam {info - 1}")
-    rcond, _ = lapack.dgecon(factors, anorm)
-    if rcond < T.shape[0] * np.finfo(np.float64).eps:
+    rcond, _ = gecon(factors, anorm)
+    if rcond < T.shape[0] * np.finfo(dtype).eps:
         raise TransportError(
             f"T is singular to working precision (reciprocal condition estimate {rcond:.2e}): "
             "its columns are linearly dependent"
         )
     perm = _permutation_from_pivots(piv)
-    factors, info_u = lapack.dtrtri(factors, lower=0, overwrite_c=1)
-    factors, info_l = lapack.dtrtri(factors, lower=1, unitdiag=1, overwrite_c=1)
+    factors, info_u = trtri(factors, lower=0, overwrite_c=1)
+    factors, info_l = trtri(factors, lower=1, unitdiag=1, overwrite_c=1)
     if info_u or info_l:
         raise TransportError("T is singular: a triangular factor could not be inverted")
     inv_diag = _inverse_diagonal(factors, perm)
@@ -183,7 +207,8 @@ def cancellation_operator(T: np.ndarray) -> CancellationOperator:
     if bad.size:
         raise TransportError(f"(T^-1)[{bad[0]}, {bad[0]}] is zero: T1 is undefined for beam {bad[0]}")
     return CancellationOperator(
-        factors=factors, perm=perm, t1_unit=1.0 / inv_diag, column_norms=norms, rcond=float(rcond)
+        factors=factors, perm=perm, t1_unit=1.0 / inv_diag, column_norms=norms, rcond=float(rcond),
+        solver="dense" if factors.dtype == np.float64 else "float32",
     )
 
 
@@ -215,7 +240,7 @@ def _inverse_diagonal(factors: np.ndarray, perm: np.ndarray) -> np.ndarray:
         # rows q_i of L^-1 transposed, i.e. columns of the unit lower triangular L^-1
         lower_t = np.ascontiguousarray(factors[:, q[i0:i1]].T)
         lower_t = np.where(cols > qi, lower_t, 0.0) + (cols == qi)
-        out[i0:i1] = (u * lower_t).sum(axis=1)
+        out[i0:i1] = (u * lower_t).sum(axis=1, dtype=np.float64)
     return out
 
 
@@ -273,7 +298,7 @@ def bounce_images(
     if not tol >= 0:
         raise TransportError(f"tol must be >= 0, got {tol}")
     photo = np.asarray(photo, dtype=np.float64)
-    operator._check(photo)
+    check_photo(operator.m, photo)
     total = np.linalg.norm(photo, axis=0)
     total = np.where(total > 0, total, 1.0)
     residual = photo.copy()

@@ -1,0 +1,73 @@
+"""Solver back-ends against the dense reference and the simulator's truth."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from ilt.bench import scene_batch
+from ilt.evaluate import relative_errors
+from ilt.sim import make_scene
+from ilt.solvers import build_operator, choose_solver, estimate_noise, independent_groups
+from ilt.transport import TransportError, bounce_images, cancellation_operator
+
+
+def independent_objects(k, beams=64):
+    """k separate M scenes (different albedo): T is block diagonal, then shuffled."""
+    scenes = [make_scene("m", beams=beams, albedo=0.5 + 0.1 * i) for i in range(k)]
+    T = scipy.linalg.block_diag(*[s.isf()[0] for s in scenes])
+    A = scipy.linalg.block_diag(*[s.A for s in scenes])
+    order = np.random.default_rng(k).permutation(T.shape[0])
+    return T[np.ix_(order, order)], A[np.ix_(order, order)]
+
+
+def test_blocks_find_groups_and_match_dense():
+    T, A = independent_objects(3)
+    groups = independent_groups(T)
+    assert sorted(len(g) for g in groups) == [64, 64, 64]
+    L = np.linalg.solve(np.eye(T.shape[0]) - A, np.random.default_rng(0).uniform(size=(T.shape[0], 3)))
+    dense = bounce_images(cancellation_operator(T), L, 6).bounces
+    op, reason = build_operator(T, "auto")
+    assert op.solver == "blocks" and "3 independent groups" in reason
+    blocks = bounce_images(op, L, 6).bounces
+    np.testing.assert_allclose(blocks, dense, atol=1e-12 * np.abs(dense).max())
+    np.testing.assert_allclose(op.apply(np.eye(T.shape[0])), np.eye(T.shape[0]) - A, atol=1e-12)
+
+
+def test_mixed_precision_error_and_refinement():
+    scene = make_scene("box", beams=768)
+    T, scale = scene.isf()
+    photos, truth = scene_batch(scene, 4, 8)
+    op, _ = build_operator(T, "mixed")
+    assert op.solver == "mixed"
+    # solves are refined to float64: T_n^-1 b to rounding
+    b = photos[:, 0]
+    np.testing.assert_allclose(T @ (op.solve(b) / op.column_norms), b, atol=1e-14 * np.abs(b).max())
+    # T1 comes from float32 factors: ~1e-7 relative, so are the bounces
+    assert np.max(np.abs(op.t1 - scene.direct / scale) / op.t1) < 1e-6
+    assert relative_errors(bounce_images(op, photos, 8).bounces, truth).max() < 1e-6
+
+
+def test_mixed_falls_back_to_dense_on_ill_conditioned_t():
+    rng = np.random.default_rng(1)
+    U, _ = np.linalg.qr(rng.normal(size=(300, 300)))
+    V, _ = np.linalg.qr(rng.normal(size=(300, 300)))
+    T = U @ np.diag(np.logspace(0, -9, 300)) @ V.T  # condition 1e9: float32 factors cannot converge
+    op, reason = build_operator(T, "mixed")
+    assert op.solver == "dense" and "fell back to dense" in reason
+
+
+def test_auto_reasons():
+    scene = make_scene("box", beams=192)
+    T, _ = scene.isf()
+    assert choose_solver(T, None)[0] == "dense"
+    assert "one connected group" in choose_solver(T, None)[1]
+    with pytest.raises(TransportError, match="unknown solver 'fast'"):
+        build_operator(T, "fast")
+
+
+@pytest.mark.parametrize("sigma", [1e-4, 1e-3, 1e-2])
+def test_noise_floor_from_negative_entries(sigma):
+    T, _ = independent_objects(2)  # half of T is exactly zero: unlit samples
+    noisy = T + np.random.default_rng(2).normal(scale=sigma, size=T.shape)
+    assert estimate_noise(noisy) == pytest.approx(sigma, rel=0.1)
+    assert estimate_noise(T) is None

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ilt.cells import integrate, mosaic
 from ilt.imageio import ImageError, read_exr, write_exr
 from ilt.isf import ISF
 from ilt.layout import sample_frame, splat, vector_to_image
@@ -95,8 +96,11 @@ class Photo:
 
 
 def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
-    """Read an EXR frame (sampled at the ISF's sample pixels) or a ``.npy`` of sample
-    vectors, shape (m,) or (m, k)."""
+    """Read an EXR frame or a ``.npy`` of sample vectors, shape (m,) or (m, k).
+
+    A frame is integrated over the ISF's cells when it has them (``cells.exr``, the
+    same cells T was built on), else read at the ISF's sample pixels.
+    """
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such file")
@@ -127,8 +131,14 @@ def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
                 f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, the ISF was captured at "
                 f"{isf.frame_shape[1]} x {isf.frame_shape[0]}"
             )
+        if isf.cells is not None and image.shape[:2] != isf.cells.shape:
+            raise InputError(f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, the ISF's cells "
+                             f"are {isf.cells.shape[1]} x {isf.cells.shape[0]}")
         try:
-            values = sample_frame(image, isf.samples).astype(np.float64)
+            if isf.cells is not None:
+                values = integrate(image, isf.cells, isf.m)
+            else:
+                values = sample_frame(image, isf.samples).astype(np.float64)
         except ValueError as exc:
             raise InputError(f"{path}: {exc}") from None
         channels = list(attrs.get("channels", []))
@@ -144,10 +154,12 @@ def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
 
 
 def _images(values: np.ndarray, isf: ISF, frame: bool) -> dict[str, np.ndarray]:
-    """The picture(s) of a sample vector: ``layout`` always, ``frame`` for frame inputs."""
-    out = {"layout": vector_to_image(values, isf.layout)}
+    """The picture(s) of a sample vector: ``layout`` always, ``frame`` for frame inputs
+    (a mosaic of cells, each painted with its value per pixel, when the ISF has cells;
+    else the values splatted at the sample pixels)."""
+    out = {"layout": vector_to_image(values, isf.layout, isf.beams)}
     if frame:
-        out["frame"] = splat(values, isf.samples, isf.frame_shape)
+        out["frame"] = mosaic(values, isf.cells) if isf.cells is not None else splat(values, isf.samples, isf.frame_shape)
     return out
 
 
@@ -171,7 +183,7 @@ def write_decomposition(
     panels = {"photo": first(photo.values)}
     panels.update({f"L{n}": first(b) for n, b in enumerate(decomposition.bounces, start=1)})
     panels["indirect"] = first(decomposition.indirect)
-    bounce_panel(directory / "preview.png", {k: vector_to_image(v, isf.layout) for k, v in panels.items()})
+    bounce_panel(directory / "preview.png", {k: vector_to_image(v, isf.layout, isf.beams) for k, v in panels.items()})
     write_json(directory / "summary.json", diagnostics)
 
 

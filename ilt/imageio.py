@@ -126,13 +126,12 @@ def write_exr(
             raise ImageError(f"{path}: OpenImageIO has no EXR writer: {oiio.geterror()}")
         if not out.open(str(tmp), spec):
             raise ImageError(f"{path}: cannot open for writing: {out.geterror()}")
-        written = out.write_image(pixels)
-        error = "" if written else out.geterror()
-        if not out.close() and written:
+        if not out.write_image(pixels):
             error = out.geterror()
-            written = False
-        if not written:
+            out.close()
             raise ImageError(f"{path}: writing pixels failed: {error}")
+        if not out.close():
+            raise ImageError(f"{path}: finishing the file failed: {out.geterror()}")
     return path
 
 

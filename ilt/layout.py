@@ -12,17 +12,39 @@ from __future__ import annotations
 import numpy as np
 
 
-def vector_to_image(values: np.ndarray, layout: tuple[int, int]) -> np.ndarray:
+def vector_to_image(
+    values: np.ndarray, layout: tuple[int, int], positions: np.ndarray | None = None
+) -> np.ndarray:
     """Arrange m samples in scanline order on a (rows, cols) grid.
 
-    values : (m,) or (m, k) array; m must equal rows * cols.
-    Returns (rows, cols) or (rows, cols, k), same dtype (a view when possible).
+    values : (m,) or (m, k) array; m must equal rows * cols, unless
+    positions : (m,) distinct ints, the scanline cell of each sample (the beams of a
+        plan that were kept when some were dropped); the other cells are 0.
+    Returns (rows, cols) or (rows, cols, k), same dtype (a view when possible
+    without `positions`).
     """
     values = np.asarray(values)
     rows, cols = (int(n) for n in layout)
     if values.ndim not in (1, 2):
         raise ValueError(f"values of shape {values.shape} are not (m,) or (m, k)")
-    if rows < 1 or cols < 1 or rows * cols != values.shape[0]:
+    if rows < 1 or cols < 1:
+        raise ValueError(f"layout {rows} x {cols} has no cells")
+    if positions is not None:
+        positions = np.asarray(positions)
+        if (
+            positions.shape != values.shape[:1]
+            or positions.dtype.kind not in "iu"
+            or np.unique(positions).size != positions.size
+            or (positions.size and (positions.min() < 0 or positions.max() >= rows * cols))
+        ):
+            raise ValueError(
+                f"positions must be {values.shape[0]} distinct cells of the "
+                f"{rows} x {cols} layout (0 to {rows * cols - 1})"
+            )
+        full = np.zeros((rows * cols, *values.shape[1:]), dtype=values.dtype)
+        full[positions] = values
+        values = full
+    if rows * cols != values.shape[0]:
         raise ValueError(
             f"layout {rows} x {cols} does not hold {values.shape[0]} samples "
             f"(rows * cols must equal m)"

@@ -64,3 +64,40 @@ def write_simulation(
             extra=fields,
         )
     return out
+
+
+def write_frames(scene, out: str | os.PathLike, parameters: dict, n_bounces: int = 8,
+                 force: bool = False, progress=None) -> Path:
+    """Write a :class:`~ilt.sim.render.RenderedScene` as camera frames (atomically)::
+
+        hdr/beam-00000.exr ... hdr/manifest.json    one float frame per unit-power beam,
+                                                    as 'ilt merge' writes them, with the plan
+        photos/<kind>.exr                           photo frames (flashlight, room, projector)
+        truth/spots.csv                             true spot centres (beam,x,y), px
+        truth/photos/<kind>-bounces.npy             (N, H, W) float32 true n-bounce frames
+        manifest.json
+
+    Frames are rendered and written one at a time.
+    """
+    from ilt.isf import write_samples
+
+    out = Path(out)
+    with staged_directory(out, force=force) as tmp:
+        hdr, truth = tmp / "hdr", tmp / "truth"
+        for d in (hdr, truth / "photos", tmp / "photos"):
+            d.mkdir(parents=True)
+        for j in range(scene.m):
+            write_exr(hdr / f"beam-{j:05d}.exr", scene.beam_frame(j),
+                      attributes={"ilt:scene": scene.name, "ilt:beam": j, "ilt:units": "radiosity per unit beam power"})
+            if progress:
+                progress(1)
+        plan = {"m": scene.m, "layout": list(scene.layout), "frame_shape": list(scene.frame_shape)}
+        write_manifest(hdr, "simulate", parameters, extra=plan)
+        write_samples(truth / "spots.csv", scene.centres)
+        for kind in ILLUMINATIONS:
+            photo, bounces = scene.photo(kind, n_bounces=n_bounces)
+            write_exr(tmp / "photos" / f"{kind}.exr", photo,
+                      attributes={"ilt:scene": scene.name, "ilt:illumination": kind})
+            save_npy(truth / "photos" / f"{kind}-bounces.npy", bounces)
+        write_manifest(tmp, "simulate", {**parameters, "frames": True, "truth_bounces": n_bounces}, extra=plan)
+    return out

@@ -28,10 +28,20 @@ def test_vector_to_image_is_scanline_order():
     assert vector_to_image(np.arange(5), (1, 5)).shape == (1, 5)
 
 
-@pytest.mark.parametrize("layout", [(2, 4), (0, 6), (7, 1)])
+@pytest.mark.parametrize("layout", [(2, 4), (3, 1), (7, 1)])
 def test_vector_to_image_layout_mismatch(layout):
     with pytest.raises(ValueError, match="does not hold 6 samples"):
         vector_to_image(np.arange(6), layout)
+    with pytest.raises(ValueError, match="no cells"):
+        vector_to_image(np.arange(6), (0, 6))
+
+
+def test_vector_to_image_places_kept_beams_at_their_cells():
+    image = vector_to_image(np.array([7.0, 8.0, 9.0]), (2, 3), positions=[0, 4, 5])
+    assert np.array_equal(image, [[7, 0, 0], [0, 8, 9]])
+    for positions in ([0, 4, 6], [1, 1, 2], [0.0, 1.0, 2.0], [0, 1]):
+        with pytest.raises(ValueError, match="3 distinct cells of the 2 x 3 layout"):
+            vector_to_image(np.ones(3), (2, 3), positions=positions)
 
 
 def _samples(m, frame_shape, seed=0):
@@ -157,7 +167,7 @@ def test_no_figures_are_left_open(tmp_path):
     import matplotlib.pyplot as plt
 
     before = plt.get_fignums()
-    for k in range(5):
+    for k in range(2):
         save_png(tmp_path / f"a{k}.png", _isf(8))
         matrix_panel(tmp_path / f"b{k}.png", {"T": _isf(8)})
         bounce_panel(tmp_path / f"c{k}.png", {"photo": _isf(8)})

@@ -1,6 +1,8 @@
-"""``ilt simulate``: a synthetic scene as an ISF directory, with ground truth."""
+"""``ilt simulate``: a synthetic scene as an ISF directory, or as camera frames, with ground truth."""
 
 from __future__ import annotations
+
+import sys
 
 import click
 
@@ -11,7 +13,8 @@ from ilt.cli.options import bounces_option, emit, force_option, json_option, out
 @click.argument("scene", type=click.Choice(["m", "box", "textured", "occluded"]))
 @output_option
 @click.option("--beams", type=click.IntRange(min=4), default=None,
-              help="Number of beams m (default: 128 for flatland scenes, 192 = 3 x 8 x 8 for box).")
+              help="Number of beams m (default: 128 for flatland scenes, 192 = 3 x 8 x 8 for box; "
+                   "with --frames 64 and 108).")
 @click.option("--albedo", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=None,
               help="Uniform albedo (default 0.7; 'textured' varies around it).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random parts of a scene.")
@@ -19,15 +22,42 @@ from ilt.cli.options import bounces_option, emit, force_option, json_option, out
 @click.option("--tracer-bounces", type=click.IntRange(min=1), default=None,
               help="Render T with a forward tracer truncated at K bounces, as the paper did (K = 7); "
                    "default: exact transport.")
+@click.option("--frames", is_flag=True,
+              help="Write rendered camera frames instead: hdr/ (one EXR per beam), photos/*.exr, truth/.")
+@click.option("--spot", type=click.FloatRange(0, 1, min_open=True), default=0.05, show_default=True,
+              help="With --frames: laser footprint sigma, in beam spacings (0.4: spots that fill their cells).")
+@click.option("--fine", type=click.IntRange(min=1), default=16, show_default=True,
+              help="With --frames: surface patches per beam spacing (the box uses fine/4 per axis).")
+@click.option("--px-per-beam", type=click.FloatRange(min=4), default=32.0, show_default=True,
+              help="With --frames: pixels between neighbouring spots.")
 @force_option
 @json_option
-def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, force, as_json):
+def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frames, spot, fine, px_per_beam,
+            force, as_json):
     """Simulate SCENE (m, box, textured, occluded) and write its ISF directory.
 
     Writes T.npy, samples.csv, manifest.json, photos/ (flashlight, room light and
     projector photos as .npy sample vectors and .exr frames) and truth/ (true
     transport A, T1, n-bounce ISFs and the photos' true bounces).
+
+    With --frames, renders what a camera sees instead (a surface finer than the beam
+    grid, laser spots of chosen width, exact interreflections): hdr/beam-NNNNN.exr,
+    photos/<kind>.exr, truth/spots.csv (true spot centres) and
+    truth/photos/<kind>-bounces.npy (true n-bounce frames); see docs/spots-and-isf.md.
     """
+    if frames:
+        from ilt.sim.render import render_scene
+        from ilt.simulate import write_frames
+
+        rs = render_scene(scene, beams=beams, albedo=albedo, seed=seed, spot=spot, fine=fine,
+                          px_per_beam=px_per_beam)
+        params = {"scene": scene, "beams": rs.m, "albedo": albedo, "seed": seed, "spot": spot, "fine": fine,
+                  "px_per_beam": px_per_beam}
+        with click.progressbar(length=rs.m, label="rendering beams", file=sys.stderr) as bar:
+            path = write_frames(rs, output, params, n_bounces=n_bounces, force=force, progress=bar.update)
+        emit(as_json, {"output": str(path), "scene": scene, "m": rs.m, "layout": list(rs.layout),
+                       "frame_shape": list(rs.frame_shape)}, [str(path)])
+        return
     from ilt.sim import make_scene
     from ilt.simulate import write_simulation
 

@@ -1,0 +1,161 @@
+"""Benchmark and accuracy study of the spots -> ISF stages.
+
+    python benchmarks/bench_isf.py throughput [--quick] [--beams M] [--width W --height H]
+    python benchmarks/bench_isf.py sampling [--quick] [--densities 32,64,128]
+
+throughput: writes m synthetic beam frames (a Gaussian laser spot on a smooth
+interreflection-like background), then times, in this process, (a) just reading
+every EXR, (b) ilt centroids + build-isf with N workers and with 1 worker. Prints
+medians and the ratios (stages / read, 1 worker / N workers).
+
+sampling: renders the flatland M at several beam densities (spot sigma 1/20 of the
+beam spacing, 16 surface patches per spacing), runs centroids, build-isf with cell
+and point sampling, decomposes the room-light and flashlight photos, and prints the
+relative error of bounces 1-4 against the truth read the same way (cell integrals of
+the true n-bounce frames, or their values at the sample pixels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def synthetic_frames(directory: Path, m: int, width: int, height: int, seed: int = 0) -> None:
+    from scipy.special import ndtr
+
+    from ilt.imageio import write_exr
+    from ilt.manifest import write_json
+
+    rng = np.random.default_rng(seed)
+    cols = int(np.ceil(np.sqrt(m * width / height)))
+    rows = int(np.ceil(m / cols))
+    gx = (np.arange(cols) + 0.5) * width / cols
+    gy = (np.arange(rows) + 0.5) * height / rows
+    yy, xx = np.mgrid[:height, :width]
+    ex, ey = np.arange(width + 1) - 0.5, np.arange(height + 1) - 0.5
+    directory.mkdir(parents=True)
+    for j in range(m):
+        cx = gx[j % cols] + rng.uniform(-0.5, 0.5)
+        cy = gy[j // cols] + rng.uniform(-0.5, 0.5)
+        spot = 2000.0 * np.outer(np.diff(ndtr((ey - cy) / 1.5)), np.diff(ndtr((ex - cx) / 1.5)))
+        background = 0.05 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * (0.3 * width) ** 2))
+        write_exr(directory / f"beam-{j:05d}.exr", spot + background + rng.normal(0, 1e-4, (height, width)))
+    write_json(directory / "manifest.json", {"layout": [1, m]})
+
+
+def _median_time(function, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def throughput(m: int, width: int, height: int, workers: int, repeats: int) -> None:
+    from ilt.build_isf import build_isf
+    from ilt.frames import open_hdr_directory, read_frame
+    from ilt.spots import run_centroids
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        t = time.perf_counter()
+        synthetic_frames(tmp / "hdr", m, width, height)
+        print(f"wrote {m} frames of {width} x {height} in {time.perf_counter() - t:.1f} s", file=sys.stderr)
+        hdr = open_hdr_directory(tmp / "hdr")
+
+        def read_all():
+            for f in hdr.files:
+                read_frame(f)
+
+        def stages(n):
+            def run():
+                run_centroids(tmp / "hdr", tmp / "spots", workers=n, force=True)
+                build_isf(tmp / "hdr", tmp / "spots", tmp / "isf", workers=n, force=True)
+            return run
+
+        read_all()  # warm the page cache
+        t_read = _median_time(read_all, repeats)
+        t_n = _median_time(stages(workers), repeats)
+        t_1 = _median_time(stages(1), repeats)
+    print(f"m = {m}, {width} x {height}, medians of {repeats}")
+    print(f"  read every EXR once (1 process)        {t_read:8.2f} s")
+    print(f"  centroids + build-isf, {workers} workers     {t_n:8.2f} s   ratio to read {t_n / t_read:.2f} (target <= 1.5)")
+    print(f"  centroids + build-isf, 1 worker        {t_1:8.2f} s   speed-up {t_1 / t_n:.2f} x (target >= 1.6 with 2)")
+
+
+def sampling_errors(scene_name: str, beams: int, spot: float, workdir: Path, n_bounces: int = 4) -> dict:
+    """{(sampling, kind): (n_bounces,) relative errors} for one rendered scene."""
+    from ilt.build_isf import build_isf, sample_like
+    from ilt.decompose import decompose
+    from ilt.isf import load_isf
+    from ilt.sim.render import render_scene
+    from ilt.simulate import write_frames
+    from ilt.spots import run_centroids
+
+    rs = render_scene(scene_name, beams=beams, spot=spot)
+    sim = write_frames(rs, workdir / "sim", {"scene": scene_name, "beams": beams})
+    run_centroids(sim / "hdr", workdir / "spots", workers=1)
+    out = {}
+    for sampling in ("cell", "point"):
+        build_isf(sim / "hdr", workdir / "spots", workdir / sampling, sampling=sampling, workers=1)
+        isf = load_isf(workdir / sampling)
+        kinds = ("room", "flashlight")
+        decompose(isf, [sim / "photos" / f"{k}.exr" for k in kinds], workdir / f"dec-{sampling}",
+                  n_bounces=n_bounces)
+        for k in kinds:
+            est = np.load(workdir / f"dec-{sampling}" / k / "bounces.npy")
+            truth = sample_like(isf, np.load(sim / "truth" / "photos" / f"{k}-bounces.npy")[:n_bounces])
+            out[(sampling, k)] = np.linalg.norm(est - truth, axis=1) / np.linalg.norm(truth, axis=1)
+    return out
+
+
+def sampling_table(densities: list[int], spot: float, scene: str) -> None:
+    import logging
+
+    logging.basicConfig(level=logging.ERROR)
+    print(f"scene {scene}, spot sigma = {spot:g} beam spacing; relative error ||Ln - truth|| / ||truth||")
+    print(f"{'m':>5} {'photo':>10} {'sampling':>8} " + " ".join(f"{'L' + str(n):>7}" for n in range(1, 5)))
+    for m in densities:
+        with tempfile.TemporaryDirectory() as tmp:
+            errors = sampling_errors(scene, m, spot, Path(tmp))
+        for (sampling, kind), e in sorted(errors.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+            print(f"{m:>5} {kind:>10} {sampling:>8} " + " ".join(f"{100 * v:6.1f}%" for v in e), flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="what", required=True)
+    t = sub.add_parser("throughput")
+    t.add_argument("--quick", action="store_true", help="m = 128, 320 x 240")
+    t.add_argument("--beams", type=int, default=1024)
+    t.add_argument("--width", type=int, default=640)
+    t.add_argument("--height", type=int, default=480)
+    t.add_argument("--workers", type=int, default=2)
+    t.add_argument("--repeats", type=int, default=3)
+    s = sub.add_parser("sampling")
+    s.add_argument("--quick", action="store_true", help="densities 16, 32")
+    s.add_argument("--densities", default="32,64,128")
+    s.add_argument("--spot", type=float, default=0.05)
+    s.add_argument("--scene", default="m")
+    args = parser.parse_args()
+    if args.what == "throughput":
+        if args.quick:
+            args.beams, args.width, args.height, args.repeats = 128, 320, 240, 1
+        throughput(args.beams, args.width, args.height, args.workers, args.repeats)
+    else:
+        densities = [16, 32] if args.quick else [int(d) for d in args.densities.split(",")]
+        sampling_table(densities, args.spot, args.scene)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    main()

@@ -1,0 +1,185 @@
+"""The build-isf stage: beam frames + spots -> the impulse scatter matrix T (paper Sec. 4).
+
+Column j of T is beam j's frame integrated over the cell of every kept spot
+(:mod:`ilt.cells`, ``sampling="cell"``), or read at the pixel of every spot's centroid
+(``sampling="point"``, the paper's method), then scaled to unit 2-norm; the scales
+are kept. Flagged beams and near-duplicate spots are dropped, each with its reason,
+so that beams, points and pixels stay one to one.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ilt.cells import cell_index, integrate_indexed, voronoi_cells
+from ilt.frames import FrameError, beam_executor, chunks, open_hdr_directory, read_frame, run_chunks
+from ilt.imageio import write_exr
+from ilt.isf import CELLS_FILE, SCALES_FILE, write_isf
+from ilt.manifest import read_manifest, save_npy, staged_directory, write_manifest
+from ilt.preview import save_png
+from ilt.spots import SPOTS_FILE, SUM_FILE, format_flags, read_spots
+
+log = logging.getLogger(__name__)
+
+SAMPLINGS = ("cell", "point")
+
+
+class BuildError(ValueError):
+    """Spots and frames that do not make an ISF; the message names the file or beam."""
+
+
+def select_beams(beams: list[int], spots, min_separation: float) -> tuple[list[int], list[dict]]:
+    """Indices (into ``beams``) of the spots to keep, and one ``{beam, reason}`` per drop.
+
+    Flagged spots go first; then, in beam order, a spot closer than ``min_separation``
+    pixels to a kept one is dropped as a near-duplicate.
+    """
+    drops, keep = [], []
+    for i, (b, s) in enumerate(zip(beams, spots)):
+        if s.flags:
+            drops.append({"beam": b, "reason": "flagged: " + format_flags(s.flags)})
+        elif not (np.isfinite(s.x) and np.isfinite(s.y)):
+            drops.append({"beam": b, "reason": "no centroid"})
+        else:
+            keep.append(i)
+    xy = np.array([[spots[i].x, spots[i].y] for i in keep]).reshape(-1, 2)
+    kept: list[int] = []
+    for k, i in enumerate(keep):
+        if kept:
+            d = np.hypot(*(xy[[keep.index(q) for q in kept]] - xy[k]).T)
+            nearest = int(np.argmin(d))
+            if d[nearest] < min_separation:
+                drops.append({"beam": beams[i], "reason": f"near-duplicate: {d[nearest]:.3g} px from beam "
+                                                           f"{beams[kept[nearest]]} (< {min_separation:g})"})
+                continue
+        kept.append(i)
+    return kept, sorted(drops, key=lambda d: d["beam"])
+
+
+def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float) -> np.ndarray:
+    """(H, W) bool pixels the scan lights: the sum of all beam frames above ``fraction`` x its
+    median at the spot pixels."""
+    rows = np.clip(np.floor(centroids[:, 1] + 0.5).astype(int), 0, frame_sum.shape[0] - 1)
+    cols = np.clip(np.floor(centroids[:, 0] + 0.5).astype(int), 0, frame_sum.shape[1] - 1)
+    return frame_sum > fraction * np.median(frame_sum[rows, cols])
+
+
+def _column_chunk(beams, files, shape, inside, rows, m):
+    """Worker: one column of raw T per frame, (m, len(beams)) float64."""
+    out = np.empty((m, len(files)))
+    for k, path in enumerate(files):
+        out[:, k] = integrate_indexed(read_frame(path, shape), inside, rows, m)
+    return out
+
+
+def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str | os.PathLike,
+              sampling: str = "cell", min_separation: float = 2.0, lit_fraction: float = 1e-3,
+              max_cell_radius: float | None = None, executor=None, workers: int | None = None,
+              chunk: int = 16, progress=None, force: bool = False) -> dict:
+    """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
+
+    Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
+    the raw T (frame units x pixels), samples.csv (plan beam, centroid x, y), cells.exr
+    ((H, W) row of T per pixel, -1 outside; cell sampling only), T.png and manifest.json
+    (plan layout, kept beams, every drop with its reason). ``max_cell_radius`` defaults
+    to 2 x the median distance between neighbouring kept spots.
+    """
+    if sampling not in SAMPLINGS:
+        raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
+    spots_dir = Path(spots_dir)
+    hdr = open_hdr_directory(hdr_dir)
+    beams, spots = read_spots(spots_dir / SPOTS_FILE)
+    for b in beams:
+        if b >= hdr.m:
+            raise BuildError(f"{spots_dir / SPOTS_FILE}: beam {b} has no image in {hdr.path} ({hdr.m} beams)")
+    kept, drops = select_beams(beams, spots, min_separation)
+    for d in drops:
+        log.warning("dropping beam %d: %s", d["beam"], d["reason"])
+    if len(kept) < 2:
+        raise BuildError(f"{spots_dir / SPOTS_FILE}: {len(kept)} usable spots; an ISF needs at least 2")
+    plan = [beams[i] for i in kept]
+    centroids = np.array([[spots[i].x, spots[i].y] for i in kept])
+    m = len(plan)
+    labels = None
+    if sampling == "cell":
+        frame_sum = _read_sum(spots_dir, hdr.frame_shape)
+        lit = None if frame_sum is None else lit_mask(frame_sum, centroids, lit_fraction)
+        if max_cell_radius is None:
+            from scipy.spatial import cKDTree
+
+            nn = cKDTree(centroids).query(centroids, k=2)[0][:, 1]
+            max_cell_radius = 2.0 * float(np.median(nn))
+        labels = voronoi_cells(centroids, hdr.frame_shape, lit, max_cell_radius)
+        inside, rows, _ = cell_index(labels)
+        empty = np.flatnonzero(np.bincount(rows, minlength=m) == 0)
+        if empty.size:
+            raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
+                             f"{centroids[empty[0]].round(2).tolist()}); lower --lit-fraction")
+    else:
+        px = np.floor(centroids + 0.5).astype(np.int64)
+        inside = px[:, 1] * hdr.frame_shape[1] + px[:, 0]
+        rows = np.arange(m)
+    tasks = [(c, [hdr.files[b] for b in c], hdr.frame_shape, inside, rows, m) for c in chunks(plan, chunk)]
+    raw = np.empty((m, m))
+    done = 0
+    with beam_executor(executor, workers) as ex:
+        for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
+            raw[:, done:done + block.shape[1]] = block
+            done += block.shape[1]
+    scales = np.linalg.norm(raw, axis=0)
+    zero = np.flatnonzero(~(scales > 0))
+    if zero.size:
+        raise BuildError(f"beam {plan[zero[0]]} ({hdr.files[plan[zero[0]]]}): its image is zero at every sample")
+    T = raw / scales
+    fields = {"sampling": sampling, "beams": plan, "drops": drops, "plan_m": hdr.m}
+    with staged_directory(out, force=force) as tmp:
+        manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan)
+        save_npy(tmp / SCALES_FILE, scales)
+        if labels is not None:
+            write_exr(tmp / CELLS_FILE, labels.astype(np.float32), channels=["label"],
+                      attributes={"ilt:quantity": "row of T per pixel, -1 outside every cell"})
+        save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)")
+        parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
+                      "max_cell_radius": max_cell_radius}
+        inputs = {str(spots_dir / SPOTS_FILE): read_manifest(spots_dir)["outputs"].get(SPOTS_FILE, "")
+                  if (spots_dir / "manifest.json").exists() else ""}
+        inputs.update(read_manifest(spots_dir).get("inputs", {}) if (spots_dir / "manifest.json").exists() else {})
+        write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields})
+    return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
+
+
+def _read_sum(spots_dir: Path, shape) -> np.ndarray | None:
+    path = spots_dir / SUM_FILE
+    if not path.exists():
+        log.warning("%s: missing; every pixel counts as lit", path)
+        return None
+    try:
+        image = read_frame(path, shape)
+    except FrameError as exc:
+        raise BuildError(str(exc)) from None
+    return image.astype(np.float64)
+
+
+__all__ = ["build_isf", "select_beams", "lit_mask", "sample_like", "BuildError", "SAMPLINGS"]
+
+
+def sample_like(isf, frames: np.ndarray) -> np.ndarray:
+    """Read frames the way the ISF reads photos: integrated over its cells, or at its samples.
+
+    frames: (H, W) or (N, H, W). Returns (m,) or (N, m) float64. Used to turn a
+    simulator's true n-bounce frames into the truth a decomposition is measured against.
+    """
+    from ilt.cells import integrate
+    from ilt.layout import sample_frame
+
+    frames = np.asarray(frames)
+    stack = frames[None] if frames.ndim == 2 else frames
+    if isf.cells is not None:
+        out = np.stack([integrate(f, isf.cells, isf.m) for f in stack])
+    else:
+        out = np.stack([sample_frame(f, isf.samples) for f in stack])
+    return out[0] if frames.ndim == 2 else out

@@ -1,0 +1,42 @@
+"""``ilt calibrate``: Mitsunaga-Nayar radiometric self-calibration of a bracket."""
+
+from __future__ import annotations
+
+import click
+
+from ilt.cli.options import emit, force_option, json_option
+
+
+@click.command("calibrate")
+@click.argument("inputs", nargs=-1, required=True, type=click.Path())
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="response.json to write (a .png plot is written beside it).")
+@click.option("--times", default=None, help="Exposure times when neither manifest nor EXIF has them, e.g. 1/15,1/30.")
+@click.option("--order", type=click.IntRange(1, 10), default=None,
+              help="Polynomial order (default: chosen on held-out pixels).")
+@click.option("--max-order", type=click.IntRange(1, 10), default=None,
+              help="Highest order tried (default 3 for RAW, 8 otherwise).")
+@click.option("--pin-span/--free-span", default=None,
+              help="Keep the product of exposure ratios at the nominal one (default: on for "
+                   "non-RAW images, off for RAW).")
+@click.option("--tolerance", type=click.FloatRange(min=0, min_open=True), default=1e-6, show_default=True,
+              help="Stop when f changes by less than this at every M.")
+@click.option("--no-plot", is_flag=True, help="Do not write the PNG plot.")
+@force_option
+@json_option
+def command(inputs, output, times, order, max_order, pin_span, tolerance, no_plot, force, as_json):
+    """Estimate the inverse response f and true exposure ratios from IMAGES_OR_DIR.
+
+    INPUTS: the frames of one bracket (RAW, or 8/16-bit TIFF/PNG/JPEG), a beam
+    directory, or a capture directory (up to 8 beams pooled). Writes the polynomial
+    coefficients, measured exposure ratios, residual and max |f(M) - M|.
+    """
+    from ilt.hdr.exposure import parse_times
+    from ilt.hdr.stages import calibrate
+
+    path, result = calibrate(list(inputs), output, times=parse_times(times) if times else None,
+                             order=order, max_order=max_order, pin_span=pin_span,
+                             tolerance=tolerance, plot=not no_plot, force=force)
+    click.echo(f"ilt: order {result['order']}, residual {result['residual']:.3g}, "
+               f"max |f(M) - M| = {result['linearity_error']:.3g}", err=True)
+    emit(as_json, result, [str(path)])

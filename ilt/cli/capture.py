@@ -1,0 +1,54 @@
+"""``ilt capture``: drive the rig through a beam plan and write a capture directory."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+import click
+
+from ilt.cli.options import emit, json_option
+
+
+@click.command("capture")
+@click.argument("config", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", type=click.Path(file_okay=False), default=None,
+              help="Capture directory (overrides the config's [output] directory).")
+@click.option("--resume", is_flag=True,
+              help="Continue an interrupted capture: complete beams are skipped, the interrupted one is shot again.")
+@json_option
+def command(config, output, resume, as_json):
+    """Scan the beams of CONFIG (a rig TOML file, see docs/capture.md).
+
+    Per beam: move the pan-tilt unit, settle, laser on, bracket of RAW exposures,
+    laser off, dark frame. Every frame is logged in capture.jsonl; Ctrl-C stops with
+    the laser off, and --resume goes on where the scan stopped. `configs/sim.toml`
+    runs on the emulated rig.
+    """
+    from ilt.capture.config import load_config
+    from ilt.capture.loop import capture
+
+    cfg = load_config(config)
+    start = time.monotonic()
+
+    def on_beam(result, done, total):
+        if not logging.getLogger().isEnabledFor(logging.INFO):
+            return  # -q: only errors on stderr
+        elapsed = time.monotonic() - start
+        eta = elapsed / done * (total - done)
+        width = 24
+        bar = "#" * round(width * done / total)
+        skipped = f", {result.skipped} exposures skipped" if result.skipped else ""
+        end = "\r" if sys.stderr.isatty() and done < total else "\n"
+        click.echo(f"[{bar:<{width}}] beam {result.beam} ({done}/{total}) {result.seconds:.1f} s"
+                   f"{skipped}, ETA {eta:.0f} s", err=True, nl=False)
+        click.echo(end, err=True, nl=False)
+
+    summary = capture(cfg, output, resume=resume, on_beam=on_beam)
+    if summary["exposures_skipped"]:
+        full, skipped = summary["exposures_full"], summary["exposures_skipped"]
+        click.echo(f"ilt: adaptive bracketing skipped {skipped} of {full} exposures ({100 * skipped / full:.0f}%), "
+                   f"about {summary['seconds_saved']:.1f} s saved",
+                   err=True)
+    emit(as_json, summary, [summary["output"]])

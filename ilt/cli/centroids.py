@@ -1,0 +1,68 @@
+"""``ilt centroids``: one sub-pixel laser spot per beam frame, with QA flags."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from ilt.cli.options import emit, force_option, json_option, output_option
+
+workers_option = click.option("--workers", type=click.IntRange(min=1), default=None,
+                              help="Worker processes (default: all cores; 1: in this process).")
+
+
+@click.command("centroids")
+@click.argument("hdr_dir", type=click.Path(exists=True, file_okay=False))
+@output_option
+@click.option("--dark", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Dark frame (EXR) to subtract (default: a robust local background level).")
+@click.option("--threshold", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.2,
+              show_default=True, help="Spot threshold, fraction of the peak above background.")
+@click.option("--min-snr", type=click.FloatRange(min=0), default=10.0, show_default=True,
+              help="Flag 'none' when the peak is below this many noise sigmas.")
+@click.option("--max-second", type=click.FloatRange(min=0), default=0.05, show_default=True,
+              help="Flag 'multiple' when a second spot has this fraction of the first's flux.")
+@click.option("--max-elongation", type=click.FloatRange(min=1), default=2.0, show_default=True,
+              help="Flag 'elongated' above this axis ratio.")
+@click.option("--large-factor", type=click.FloatRange(min=1), default=4.0, show_default=True,
+              help="Flag 'large' above this multiple of the median spot area.")
+@click.option("--max-area", type=click.FloatRange(min=1), default=None, help="Flag 'large' above this many pixels.")
+@click.option("--saturation", type=float, default=None,
+              help="Sensor clipping level in frame units (default: detect a flat top).")
+@click.option("--roi", default=None, help="Region of interest x0,y0,x1,y1 in pixels.")
+@click.option("--refine", is_flag=True, help="Refine each centroid with a 2D Gaussian fit.")
+@workers_option
+@force_option
+@json_option
+def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongation, large_factor, max_area,
+            saturation, roi, refine, workers, force, as_json):
+    """Find the laser spot of every beam frame in HDR_DIR (one EXR per beam, sorted by
+    name, optional manifest.json with the plan's layout).
+
+    Writes OUTPUT/spots.csv (beam,x,y,flux,peak,area,flags; pixel centres at integer
+    coordinates, (0, 0) the top-left), sum.exr (sum of the frames), overlay.png and
+    manifest.json. Flagged beams are listed on stderr; build-isf drops them.
+    """
+    from ilt.spots import SpotParameters, run_centroids
+
+    if roi is not None:
+        try:
+            roi = tuple(float(v) for v in roi.split(","))
+            assert len(roi) == 4
+        except (ValueError, AssertionError):
+            raise click.BadParameter(f"not x0,y0,x1,y1: {roi}", param_hint="--roi") from None
+    params = SpotParameters(threshold=threshold, min_snr=min_snr, max_second=max_second,
+                            max_elongation=max_elongation, large_factor=large_factor, max_area=max_area,
+                            saturation=saturation, roi=roi, refine=refine)
+
+    with click.progressbar(length=_count(hdr_dir), label="centroids", file=sys.stderr) as bar:
+        summary = run_centroids(hdr_dir, output, params, dark=dark, workers=workers, progress=bar.update,
+                                force=force)
+    emit(as_json, summary, [summary["output"]])
+
+
+def _count(hdr_dir) -> int:
+    from pathlib import Path
+
+    return sum(1 for p in Path(hdr_dir).iterdir() if p.suffix.lower() == ".exr")

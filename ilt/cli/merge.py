@@ -1,0 +1,57 @@
+"""``ilt merge``: RAW brackets to linear float EXR, one per beam (docs/hdr.md)."""
+
+from __future__ import annotations
+
+import click
+
+from ilt.cli.options import emit, force_option, json_option
+
+
+@click.command("merge")
+@click.argument("inputs", nargs=-1, required=True, type=click.Path())
+@click.option("-o", "--output", required=True, type=click.Path(),
+              help="HDR directory to write (an .exr file with --bracket).")
+@click.option("--bracket", is_flag=True, help="INPUTS are the RAW files of one hand-shot bracket.")
+@click.option("--times", default=None, help="Exposure times for --bracket files without EXIF, e.g. 1/15,1/30.")
+@click.option("--dark", type=click.Path(dir_okay=False), default=None, help="Dark frame for --bracket.")
+@click.option("--response", "response_path", type=click.Path(dir_okay=False), default=None,
+              help="response.json from ilt calibrate (default: linear, nominal exposures).")
+@click.option("--gain", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+              help="Sensor gain in electrons per DN (noise model of the weights).")
+@click.option("--read-noise", type=click.FloatRange(min=0), default=2.0, show_default=True,
+              help="Read noise in DN per photosite (noise model of the weights).")
+@click.option("--margin", type=click.FloatRange(0, 0.5), default=0.03, show_default=True,
+              help="Samples within this fraction of the white level count as saturated.")
+@click.option("--color", is_flag=True, help="Merge linear camera RGB (R, G, B channels) instead of green.")
+@click.option("--compression", type=click.Choice(["zip", "zips", "piz"]), default="zip", show_default=True)
+@click.option("-j", "--workers", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Beams merged in parallel (processes).")
+@force_option
+@json_option
+def command(inputs, output, bracket, times, dark, response_path, gain, read_noise, margin, color,
+            compression, workers, force, as_json):
+    """Merge each beam's RAW bracket of CAPTURE_DIR into HDR_DIR/beam-NNNNN.exr.
+
+    Dark frame subtracted, inverse response applied, noise-optimal weights
+    (inverse variance), saturated and near-black samples left out. Beside each EXR:
+    .valid.png (count of samples used) and .saturated.png (saturated in every frame).
+    With --bracket, INPUTS are one bracket's RAW files and -o names the .exr.
+    """
+    from ilt.hdr.exposure import parse_times
+    from ilt.hdr.merge import NoiseModel
+    from ilt.hdr.stages import MergeOptions, load_response, merge_capture, merge_files
+
+    response = load_response(response_path) if response_path else None
+    options = MergeOptions(NoiseModel(gain, read_noise), response, margin, color, compression)
+    if bracket:
+        path, summary = merge_files(list(inputs), output, options,
+                                    parse_times(times) if times else None, dark, force)
+    else:
+        if len(inputs) != 1 or times or dark:
+            raise click.UsageError("give one CAPTURE_DIR (or --bracket FILES...); "
+                                   "--times and --dark are for --bracket")
+        params = {"gain": gain, "read_noise": read_noise, "margin": margin, "color": color,
+                  "compression": compression, "response": response_path}
+        path, summary = merge_capture(inputs[0], output, options, workers=workers, force=force,
+                                      parameters=params)
+    emit(as_json, summary, [str(path)])

@@ -1,0 +1,123 @@
+"""The capture directory layout: one directory per beam, each a bracket of RAW frames.
+
+```
+capture/
+  manifest.json            optional; "beams": ["beam-00000", ...] (else beam-* in order)
+  beam-00000/
+    manifest.json          {"beam": 0, "frames": [...], "dark": {...} | null}
+    frame-00.dng ...
+```
+
+Each frame record is ``{"file": "frame-00.dng", "exposure_time": "1/8000", "f_number": "16"}``:
+times in seconds and f-numbers as JSON numbers or exact rational text ("1/125", "1.2").
+Either fact may be missing (null); it is then read from the frame's EXIF. See docs/hdr.md.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from ilt.manifest import MANIFEST, write_json
+
+BEAM_GLOB = "beam-[0-9]*"
+
+
+class CaptureError(ValueError):
+    """A capture directory or beam manifest that does not follow the layout."""
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame of a beam: file name in the beam directory and its nominal exposure facts
+    (text as written, e.g. "1/125" s and "1.2"; None when the manifest leaves it to EXIF)."""
+
+    file: str
+    exposure_time: str | None = None
+    f_number: str | None = None
+
+
+@dataclass(frozen=True)
+class Bracket:
+    """A beam's frames as absolute paths with their manifest facts, and its dark frame."""
+
+    beam_dir: Path
+    frames: list[FrameRecord]
+    dark: FrameRecord | None
+
+    def path(self, record: FrameRecord) -> Path:
+        return self.beam_dir / record.file
+
+
+def write_beam_manifest(beam_dir: str | os.PathLike, frames: list[FrameRecord],
+                        dark: FrameRecord | None = None, extra: dict | None = None) -> Path:
+    """Write ``beam_dir/manifest.json`` for the frames (atomically)."""
+    beam_dir = Path(beam_dir)
+    data = {
+        "beam": _beam_index(beam_dir),
+        "frames": [asdict(f) for f in frames],
+        "dark": asdict(dark) if dark else None,
+    }
+    data.update(extra or {})
+    return write_json(beam_dir / MANIFEST, data)
+
+
+def read_beam(beam_dir: str | os.PathLike) -> Bracket:
+    """Read a beam directory's manifest. Raises CaptureError naming the file at fault."""
+    beam_dir = Path(beam_dir)
+    path = beam_dir / MANIFEST
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: missing (a beam directory needs its manifest.json)") from None
+    except json.JSONDecodeError as exc:
+        raise CaptureError(f"{path}: not valid JSON ({exc})") from None
+    try:
+        frames = [_record(f) for f in data["frames"]]
+        dark = _record(data["dark"]) if data.get("dark") else None
+    except (KeyError, TypeError) as exc:
+        raise CaptureError(f"{path}: frame records need at least a 'file' ({exc!r})") from None
+    if not frames:
+        raise CaptureError(f"{path}: lists no frames")
+    names = [f.file for f in frames] + ([dark.file] if dark else [])
+    for name in names:
+        if Path(name).name != name:
+            raise CaptureError(f"{path}: frame file {name!r} must be a plain name inside the beam directory")
+    if len(set(names)) != len(names):
+        raise CaptureError(f"{path}: a frame file is listed twice")
+    return Bracket(beam_dir, frames, dark)
+
+
+def list_beams(capture_dir: str | os.PathLike) -> list[Path]:
+    """Beam directories of a capture, in the order of its manifest (else by name)."""
+    capture_dir = Path(capture_dir)
+    if not capture_dir.is_dir():
+        raise CaptureError(f"{capture_dir}: not a directory")
+    top = capture_dir / MANIFEST
+    beams = None
+    if top.exists():
+        try:
+            beams = json.loads(top.read_text()).get("beams")
+        except (json.JSONDecodeError, AttributeError) as exc:
+            raise CaptureError(f"{top}: not a valid manifest ({exc})") from None
+    if beams is None:
+        dirs = sorted(p for p in capture_dir.glob(BEAM_GLOB) if p.is_dir())
+    else:
+        dirs = [capture_dir / str(b) for b in beams]
+    if not dirs:
+        raise CaptureError(f"{capture_dir}: no beam-NNNNN directories (see docs/hdr.md)")
+    return dirs
+
+
+def _record(item: dict) -> FrameRecord:
+    def text(v):
+        return None if v is None else str(v)
+
+    return FrameRecord(str(item["file"]), text(item.get("exposure_time")), text(item.get("f_number")))
+
+
+def _beam_index(beam_dir: Path) -> int | None:
+    tail = beam_dir.name.rpartition("-")[2]
+    return int(tail) if tail.isdigit() else None

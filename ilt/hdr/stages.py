@@ -1,0 +1,450 @@
+"""File-level HDR stages: calibrate a bracket's response, merge brackets to EXR.
+
+The algorithms (ilt.hdr.mitsunaga_nayar, ilt.hdr.merge) take arrays; this module reads
+frames, checks that a bracket is one camera at one size, writes outputs atomically and
+spreads beams over a ``concurrent.futures`` executor. Layout: docs/hdr.md.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import json
+import logging
+import multiprocessing as mp
+import os
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+from ilt.hdr.bracket import Bracket, FrameRecord, list_beams, read_beam
+from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
+from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
+from ilt.hdr.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
+from ilt.imageio import write_exr
+from ilt.manifest import atomic_path, staged_directory, write_json, write_manifest
+
+log = logging.getLogger(__name__)
+
+RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
+
+
+# ---------------------------------------------------------------- response files
+
+@dataclass(frozen=True)
+class Response:
+    """A calibrated response as stored in response.json: the inverse response f on
+    normalised values and measured relative exposures keyed by nominal (time, f-number)."""
+
+    coefficients: np.ndarray
+    exposures: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def __call__(self, m):
+        return np.polynomial.polynomial.polyval(np.asarray(m, dtype=np.float64), self.coefficients)
+
+    def is_identity(self) -> bool:
+        c = self.coefficients
+        return len(c) == 2 and c[0] == 0 and c[1] == 1
+
+
+def load_response(path: str | os.PathLike) -> Response:
+    """Read response.json written by `calibrate`; CalibrationError naming the file."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+        c = np.asarray(data["coefficients"], dtype=np.float64)
+        table = {(x["exposure_time"], x["f_number"]): float(x["relative_exposure"])
+                 for x in data.get("exposures", [])}
+    except FileNotFoundError:
+        raise
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise CalibrationError(f"{path}: not a response file written by ilt calibrate ({exc})") from None
+    if c.ndim != 1 or c.size < 2 or not np.isfinite(c).all():
+        raise CalibrationError(f"{path}: coefficients must be a list of at least two numbers")
+    return Response(c, table)
+
+
+# ---------------------------------------------------------------- reading brackets
+
+@dataclass
+class Frame:
+    """One decoded frame: green (h, w) black-subtracted DN (or (h, w, 3) with colour),
+    its info, and the fingerprint of the file's bytes."""
+
+    image: np.ndarray
+    info: GreenInfo
+    fingerprint: str
+
+
+def read_frame(path: Path, record: FrameRecord | None = None, hand_time=None, *,
+               margin: float = SATURATION_MARGIN, color: bool = False) -> Frame:
+    """Read a RAW frame once: its bytes are hashed and decoded from memory."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise RawError(f"{path}: no such file") from None
+    fingerprint = "sha256:" + hashlib.sha256(data).hexdigest()
+    green, info = read_green(path, record.exposure_time if record else None,
+                             record.f_number if record else None, hand_time, margin, data=data)
+    image = green
+    if color:
+        image, saturated = read_color(path, margin, data=data)
+        info = GreenInfo(**{**info.__dict__, "saturated": saturated})
+    return Frame(image, info, fingerprint)
+
+
+def check_same_camera(frames: list[Frame]) -> None:
+    """Every frame of a bracket from one camera at one size; RawError naming the odd file."""
+    first = frames[0].info
+    for fr in frames[1:]:
+        i = fr.info
+        if i.full_shape != first.full_shape:
+            raise RawError(f"{i.path}: size {i.full_shape[1]} x {i.full_shape[0]} differs from "
+                           f"{first.path.name} ({first.full_shape[1]} x {first.full_shape[0]})")
+        if i.camera != first.camera or i.cfa != first.cfa:
+            raise RawError(f"{i.path}: camera {i.camera!r} ({i.cfa}) differs from "
+                           f"{first.path.name} ({first.camera!r}, {first.cfa})")
+
+
+def relative_exposures(frames: list[Frame], response: Response | None) -> np.ndarray:
+    """(K,) e_k = t / N^2, or the calibration's measured value for the same nominal facts."""
+    out = []
+    for fr in frames:
+        x = fr.info.exposure
+        key = (x.time_text, x.f_number_text)
+        if response is not None and key in response.exposures:
+            out.append(response.exposures[key])
+        else:
+            out.append(x.relative_exposure())
+    return np.asarray(out)
+
+
+# ---------------------------------------------------------------- merging
+
+@dataclass(frozen=True)
+class MergeOptions:
+    """noise: NoiseModel (gain e-/DN, read noise DN); response: calibrated Response or
+    None (linear); margin: saturation headroom; color: merge RGB (``--color``);
+    compression: EXR compression, lossless only."""
+
+    noise: NoiseModel = NoiseModel()
+    response: Response | None = None
+    margin: float = SATURATION_MARGIN
+    color: bool = False
+    compression: str = "zip"
+
+
+def merge_frames(frames: list[Frame], dark: Frame | None, options: MergeOptions):
+    """Merge decoded frames; returns (radiance, count, saturated, exposures, attributes)."""
+    check_same_camera(frames + ([dark] if dark else []))
+    exposures = relative_exposures(frames, options.response)
+    response = options.response
+    full_scale = frames[0].info.white_level - float(np.mean(frames[0].info.black_levels))
+    if response is not None and response.is_identity():
+        response = None
+    sat = [fr.info.saturated for fr in frames]
+    images = [fr.image for fr in frames]
+    if options.color:
+        sat = [np.repeat(s[..., None], 3, axis=2) for s in sat]
+    try:
+        radiance, count, saturated = merge_bracket(
+            images, exposures, sat, noise=options.noise, response=response,
+            full_scale=full_scale, dark=dark.image if dark else None)
+    except MergeError as exc:
+        names = ", ".join(fr.info.path.name for fr in frames)
+        raise MergeError(f"{frames[0].info.path.parent}: {exc} ({names})") from None
+    if options.color:
+        count, saturated = count.min(axis=2), saturated.any(axis=2)
+    first = frames[0].info
+    attributes = {
+        "units": "DN per second at f/1 per photosite, black-subtracted (green)" if not options.color
+                 else "DN per second at f/1 per photosite, black-subtracted (camera RGB)",
+        "frames": len(frames),
+        "exposure_times": [fr.info.exposure.exposure_time for fr in frames],
+        "f_numbers": [fr.info.exposure.f_number for fr in frames],
+        "relative_exposures": exposures.tolist(),
+        "camera": first.camera,
+        "full_shape": list(first.full_shape),
+        "pixel_origin": list(first.origin),
+        "pixel_scale": float(first.scale),
+        "gain": float(options.noise.gain),
+        "read_noise": float(options.noise.read_noise),
+        "dark_frame": dark.info.path.name if dark else "",
+        "saturated_pixels": int(saturated.sum()),
+    }
+    return radiance, count, saturated, exposures, attributes
+
+
+def merge_beam(beam_dir: str | os.PathLike, out_dir: str | os.PathLike, options: MergeOptions) -> dict:
+    """Merge one beam directory into ``out_dir/<beam>.exr``, ``.valid.png``, ``.saturated.png``.
+
+    Memory: one bracket. Returns a summary (beam, files, inputs with fingerprints).
+    Raises RawError/MergeError/ExposureError naming the file at fault; writes nothing then.
+    """
+    bracket = read_beam(beam_dir)
+    frames = [read_frame(bracket.path(r), r, margin=options.margin, color=options.color)
+              for r in bracket.frames]
+    dark = (read_frame(bracket.path(bracket.dark), bracket.dark, margin=options.margin,
+                       color=options.color) if bracket.dark else None)
+    radiance, count, saturated, exposures, attributes = merge_frames(frames, dark, options)
+    name = Path(beam_dir).name
+    out_dir = Path(out_dir)
+    channels = ["R", "G", "B"] if options.color else ["Y"]
+    image = radiance if options.color else radiance[..., None]
+    write_exr(out_dir / f"{name}.exr", image, channels, attributes, options.compression)
+    write_png(out_dir / f"{name}.valid.png", count)
+    write_png(out_dir / f"{name}.saturated.png", saturated.astype(np.uint8) * 255)
+    inputs = {f"{name}/{fr.info.path.name}": fr.fingerprint for fr in frames + ([dark] if dark else [])}
+    return {"beam": name, "frames": len(frames), "saturated_pixels": int(saturated.sum()),
+            "min_valid": int(count.min()), "inputs": inputs,
+            "exposures": [fr.info.exposure.as_dict() for fr in frames]}
+
+
+def merge_capture(
+    capture_dir: str | os.PathLike,
+    output: str | os.PathLike,
+    options: MergeOptions = MergeOptions(),
+    *,
+    executor: cf.Executor | None = None,
+    workers: int = 1,
+    force: bool = False,
+    parameters: dict | None = None,
+) -> tuple[Path, dict]:
+    """Merge every beam of a capture directory into an HDR directory (docs/hdr.md).
+
+    Beams run through ``executor`` (any concurrent.futures.Executor, e.g. a cluster's),
+    else a process pool of ``workers`` (1: in this process). The directory is staged and
+    renamed into place only when every beam succeeded: on any error an existing
+    ``output`` is untouched and nothing half-written remains.
+    """
+    beams = list_beams(capture_dir)
+    with staged_directory(output, force=force) as tmp:
+        summaries = _run_beams(beams, tmp, options, executor, workers)
+        inputs = {k: v for s in summaries for k, v in s.pop("inputs").items()}
+        first = summaries[0]
+        write_manifest(tmp, "merge", parameters or {}, inputs, extra={
+            "beams": [s["beam"] for s in summaries],
+            "channels": ["R", "G", "B"] if options.color else ["Y"],
+            "pixel_mapping": {"origin": [0.5, 0.5], "scale": 2.0,
+                              "note": "pixel (i, j) is at full-frame x = 0.5 + 2 j, y = 0.5 + 2 i"},
+            "beam_summaries": summaries,
+            "frames_per_beam": first["frames"],
+        })
+    return Path(output), {"output": str(output), "beams": len(summaries),
+                          "saturated_pixels": sum(s["saturated_pixels"] for s in summaries)}
+
+
+def _run_beams(beams, out_dir, options, executor, workers) -> list[dict]:
+    if executor is None and workers <= 1:
+        return [merge_beam(b, out_dir, options) for b in beams]
+    own = executor is None
+    # forkserver, not fork: LibRaw's OpenMP threads can deadlock a forked child
+    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("forkserver")) \
+        if own else executor
+    try:
+        futures = [pool.submit(merge_beam, b, out_dir, options) for b in beams]
+        try:
+            return [f.result() for f in futures]
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            cf.wait(futures)  # let running beams finish before the staged directory is removed
+            raise
+    finally:
+        if own:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def merge_files(paths: list[str | os.PathLike], output: str | os.PathLike,
+                options: MergeOptions = MergeOptions(), times: list[Fraction] | None = None,
+                dark: str | os.PathLike | None = None, force: bool = False) -> tuple[Path, dict]:
+    """Merge one hand-shot bracket (RAW files) into ``output`` (.exr) plus
+    ``<stem>.valid.png`` and ``<stem>.saturated.png`` beside it."""
+    output = Path(output)
+    if output.suffix.lower() != ".exr":
+        raise MergeError(f"{output}: the output of --bracket must be an .exr file")
+    if times is not None and len(times) != len(paths):
+        raise MergeError(f"--times gives {len(times)} exposure times for {len(paths)} files")
+    siblings = [output, output.with_suffix(".valid.png"), output.with_suffix(".saturated.png")]
+    for p in siblings:
+        if p.exists() and not force:
+            raise MergeError(f"{p} exists; use --force to replace it")
+    frames = [read_frame(Path(p), None, times[k] if times else None, margin=options.margin,
+                         color=options.color) for k, p in enumerate(paths)]
+    dark_frame = read_frame(Path(dark), None, max(times) if times else None, margin=options.margin,
+                            color=options.color) if dark else None
+    radiance, count, saturated, _, attributes = merge_frames(frames, dark_frame, options)
+    image = radiance if options.color else radiance[..., None]
+    write_exr(output, image, ["R", "G", "B"] if options.color else ["Y"], attributes, options.compression)
+    write_png(siblings[1], count)
+    write_png(siblings[2], saturated.astype(np.uint8) * 255)
+    return output, {"output": str(output), "frames": len(frames), "saturated_pixels": int(saturated.sum())}
+
+
+def write_png(path: Path, image: np.ndarray) -> Path:
+    """An 8-bit single-channel PNG, atomically (valid counts, masks)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image, dtype=np.uint8))
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.tobytes())
+    return path
+
+
+# ---------------------------------------------------------------- calibration
+
+@dataclass
+class CalibrationInput:
+    """A bracket (or several of the same exposures) as normalised images for fitting."""
+
+    images: list[list[np.ndarray]]  # per scene, Q images (h, w) of M in [0, 1], shortest first
+    valid: list[list[np.ndarray]]
+    facts: list  # Q ExposureFacts, shortest first
+    raw: bool
+    files: list[Path]
+
+
+def collect_calibration_input(inputs: list[str | os.PathLike], times: list[Fraction] | None,
+                              max_beams: int = 8) -> CalibrationInput:
+    """Files (a bracket), a beam directory, or a capture directory (up to ``max_beams``
+    beams pooled) -> normalised images. RAW: green / (white - black); others: value / max code."""
+    paths = [Path(p) for p in inputs]
+    brackets: list[list[tuple[Path, FrameRecord | None]]]
+    if len(paths) == 1 and paths[0].is_dir():
+        d = paths[0]
+        if (d / "manifest.json").exists() and not any(d.glob("beam-[0-9]*")):
+            beam_dirs = [d]
+        else:
+            beam_dirs = list_beams(d)[:max_beams]
+        brackets = []
+        for b in beam_dirs:
+            br: Bracket = read_beam(b)
+            brackets.append([(br.path(r), r) for r in br.frames])
+    else:
+        brackets = [[(p, None) for p in paths]]
+    if times is not None and any(len(b) != len(times) for b in brackets):
+        raise CalibrationError(f"--times gives {len(times)} times for a bracket of {len(brackets[0])} files")
+    scenes, valid, facts_ref, raw_kind, files = [], [], None, None, []
+    for bracket in brackets:
+        loaded = [_load_normalised(p, r, times[k] if times else None) for k, (p, r) in enumerate(bracket)]
+        kinds = {x[2] for x in loaded}
+        if len(kinds) > 1:
+            raise CalibrationError(f"{bracket[0][0]}: mixes RAW and non-RAW files in one bracket")
+        raw_kind = kinds.pop() if raw_kind is None else raw_kind
+        shapes = {x[0].shape for x in loaded}
+        if len(shapes) > 1:
+            odd = next(p for (p, _), x in zip(bracket, loaded) if x[0].shape != loaded[0][0].shape)
+            raise CalibrationError(f"{odd}: size {x[0].shape} differs from {bracket[0][0].name}")
+        order = sorted(range(len(loaded)), key=lambda k: loaded[k][1].relative_exposure())
+        facts = [loaded[k][1] for k in order]
+        if facts_ref is not None and [f.relative_exposure() for f in facts] != \
+                [f.relative_exposure() for f in facts_ref]:
+            raise CalibrationError(f"{bracket[0][0].parent}: exposures differ from the first bracket's")
+        facts_ref = facts
+        images = [loaded[k][0] for k in order]
+        clip = [loaded[k][3] for k in order]
+        low = 0.003 if raw_kind else 3 / 255
+        masks = usable_samples(images, low, 1.0, 1.0)
+        valid.append([m & ~c for m, c in zip(masks, clip)])
+        scenes.append(images)
+        files += [p for p, _ in bracket]
+    return CalibrationInput(scenes, valid, facts_ref, bool(raw_kind), files)
+
+
+def _load_normalised(path: Path, record: FrameRecord | None, hand_time):
+    """(M image, facts, is_raw, clipped mask) of one file."""
+    from ilt.hdr.exposure import resolve_facts
+
+    if path.suffix.lower() in RAW_SUFFIXES:
+        frame = read_frame(path, record, hand_time)
+        i = frame.info
+        full = i.white_level - float(np.mean(i.black_levels))
+        return frame.image / full, i.exposure, True, i.saturated
+    import cv2
+
+    if not path.is_file():
+        raise CalibrationError(f"{path}: no such file")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+    if image is None:
+        raise CalibrationError(f"{path}: not an image OpenCV can read (nor a RAW file by its suffix)")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise CalibrationError(f"{path}: {image.dtype} pixels; calibration needs 8- or 16-bit images")
+    if image.ndim == 3:
+        image = image[:, :, 1]  # green of BGR(A)
+    top = float(np.iinfo(image.dtype).max)
+    facts = resolve_facts(path, record.exposure_time if record else None,
+                          record.f_number if record else None, hand_time=hand_time)
+    return image / top, facts, False, image >= top - 0.5
+
+
+def calibrate(inputs, output: str | os.PathLike, *, times=None, order=None, max_order=None,
+              pin_span=None, tolerance=1e-6, plot=True, force=False) -> tuple[Path, dict]:
+    """Mitsunaga-Nayar calibration of a bracket; writes ``output`` (JSON) and a PNG plot
+    beside it (same stem). RAW input: intercept fixed at 0, order <= 3."""
+    output = Path(output)
+    plot_path = output.with_suffix(".png")
+    for p in (output, plot_path) if plot else (output,):
+        if p.exists() and not force:
+            raise CalibrationError(f"{p} exists; use --force to replace it")
+    data = collect_calibration_input(inputs, times)
+    e = np.array([f.relative_exposure() for f in data.facts])
+    if np.any(np.diff(e) <= 0):
+        raise CalibrationError(f"{data.files[0].parent}: two frames have the same exposure; "
+                               "calibration needs distinct exposures")
+    images = [np.concatenate([s[q].ravel() for s in data.images]) for q in range(len(e))]
+    valid = [np.concatenate([v[q].ravel() for v in data.valid]) for q in range(len(e))]
+    fit = fit_response(images, e, valid, order=order,
+                       max_order=max_order or (3 if data.raw else 8),
+                       zero_intercept=data.raw, pin_span=(not data.raw) if pin_span is None else pin_span,
+                       tolerance=tolerance)
+    if not fit.converged:
+        log.warning("the response did not converge to the tolerance; the result may drift")
+    measured = fit.relative_exposures()
+    # measured exposures keep the nominal scale: their geometric mean equals the nominal one
+    measured = measured * np.exp(np.mean(np.log(e)) - np.mean(np.log(measured)))
+    result = {
+        "method": "Mitsunaga & Nayar 1999",
+        "kind": "raw" if data.raw else "ldr",
+        "coefficients": fit.coefficients.tolist(),
+        "order": fit.order,
+        "ratios": fit.ratios.tolist(),
+        "nominal_ratios": fit.nominal_ratios.tolist(),
+        "exposures": [{"exposure_time": f.time_text, "f_number": f.f_number_text,
+                       "nominal": f.relative_exposure(), "relative_exposure": float(m)}
+                      for f, m in zip(data.facts, measured)],
+        "residual": fit.residual,
+        "held_out": {str(k): v for k, v in fit.held_out.items()},
+        "linearity_error": fit.linearity_error(),
+        "iterations": fit.iterations,
+        "converged": fit.converged,
+        "pairs": fit.pairs,
+        "inputs": [str(p) for p in data.files],
+    }
+    write_json(output, result)
+    if plot:
+        _plot_response(fit, plot_path)
+    return output, result
+
+
+def _plot_response(fit: ResponseFit, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    m = np.linspace(0, 1, 501)
+    fig, ax = plt.subplots(figsize=(5, 4), dpi=100)
+    ax.plot(m, fit(m), label=f"f(M), order {fit.order}")
+    ax.plot(m, m, "k:", lw=0.8, label="linear")
+    ax.set_xlabel("normalised measurement M")
+    ax.set_ylabel("normalised irradiance I = f(M)")
+    ax.set_title(f"max |f(M) - M| = {fit.linearity_error():.2e}")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)

@@ -1,0 +1,169 @@
+"""centroids -> build-isf -> decompose end to end on rendered frames, against the truth."""
+
+import json
+import shutil
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ilt.build_isf import build_isf, sample_like
+from ilt.cells import integrate, mosaic, voronoi_cells
+from ilt.cli import cli
+from ilt.imageio import read_exr, write_exr
+from ilt.isf import load_isf
+
+
+def run(*args, ok=True):
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    if ok:
+        assert result.exit_code == 0, result.output + repr(result.exception)
+    return result
+
+
+def _pipeline(root, beams):
+    sim, spots = root / "sim", root / "spots"
+    run("simulate", "m", "--frames", "--beams", beams, "--fine", 8, "--px-per-beam", 24, "-o", sim)
+    run("centroids", sim / "hdr", "-o", spots, "--workers", 1)
+    for sampling in ("cell", "point"):
+        run("build-isf", sim / "hdr", spots, "-o", root / sampling, "--sampling", sampling, "--workers", 1)
+        run("decompose", "--isf", root / sampling, sim / "photos" / "room.exr", sim / "photos" / "flashlight.exr",
+            "-o", root / f"dec-{sampling}", "--no-cache", "--bounces", 4)
+    return sim
+
+
+def _errors(root, sim, sampling, kind):
+    isf = load_isf(root / sampling)
+    est = np.load(root / f"dec-{sampling}" / kind / "bounces.npy")
+    truth = sample_like(isf, np.load(sim / "truth" / "photos" / f"{kind}-bounces.npy")[:4])
+    return np.linalg.norm(est - truth, axis=1) / np.linalg.norm(truth, axis=1)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    out = {}
+    for beams in (16, 32):
+        root = tmp_path_factory.mktemp(f"m{beams}")
+        out[beams] = (root, _pipeline(root, beams))
+    return out
+
+
+def test_stage_directories(runs):
+    root, sim = runs[32]
+    spots = (root / "spots" / "spots.csv").read_text().splitlines()
+    assert spots[0] == "beam,x,y,flux,peak,area,flags" and len(spots) == 33
+    truth = np.loadtxt(sim / "truth" / "spots.csv", delimiter=",", skiprows=1)
+    found = np.loadtxt(root / "spots" / "spots.csv", delimiter=",", skiprows=1, usecols=(1, 2))
+    assert np.sqrt(((found - truth[:, 1:]) ** 2).sum(1).mean()) <= 0.02
+    for name in ("T.npy", "samples.csv", "manifest.json", "cells.exr", "scales.npy", "T.png"):
+        assert (root / "cell" / name).exists(), name
+    assert (root / "spots" / "overlay.png").exists()
+    isf = load_isf(root / "cell")
+    np.testing.assert_allclose(np.linalg.norm(isf.T, axis=0), 1, rtol=1e-12)
+    assert isf.cells.shape == isf.frame_shape and isf.cells.min() == -1 and isf.cells.max() == 31
+    assert isf.layout == (1, 32) and isf.scales.shape == (32,)
+    # the decomposition is shown as a mosaic of cells on the camera frame
+    image, _ = read_exr(root / "dec-cell" / "room" / "bounce-1.frame.exr")
+    assert image.shape[:2] == isf.frame_shape
+
+
+def test_cell_sampling_recovers_the_direct_image(runs):
+    root, sim = runs[32]
+    for kind in ("room", "flashlight"):
+        cell, point = _errors(root, sim, "cell", kind), _errors(root, sim, "point", kind)
+        assert cell[0] < 0.05, (kind, cell)
+        assert point[0] > 0.3 and (point[1:] > 0.8).all()    # the paper's point sampling under-counts
+
+
+def test_errors_fall_as_the_beam_density_grows(runs):
+    for kind in ("room", "flashlight"):
+        coarse = _errors(*runs[16], "cell", kind)
+        fine = _errors(*runs[32], "cell", kind)
+        assert (fine < coarse).all(), (kind, coarse, fine)
+
+
+def test_cells_partition_the_lit_pixels():
+    centroids = np.array([[2.0, 2.0], [7.0, 2.0], [4.5, 6.0]])
+    lit = np.ones((9, 10), dtype=bool)
+    lit[:, 0] = False
+    labels = voronoi_cells(centroids, (9, 10), lit)
+    assert (labels[:, 0] == -1).all() and set(np.unique(labels)) == {-1, 0, 1, 2}
+    image = np.random.default_rng(0).random((9, 10))
+    np.testing.assert_allclose(integrate(image, labels).sum(), image[lit].sum())
+    painted = mosaic(integrate(np.ones((9, 10)), labels), labels)
+    np.testing.assert_allclose(painted[lit], 1.0, rtol=1e-6)
+
+
+def test_executor_is_pluggable_and_gives_the_same_T(runs, tmp_path):
+    root, sim = runs[16]
+    with ThreadPoolExecutor(2) as ex:
+        build_isf(sim / "hdr", root / "spots", tmp_path / "isf", executor=ex, chunk=3)
+    np.testing.assert_array_equal(np.load(tmp_path / "isf" / "T.npy"), np.load(root / "cell" / "T.npy"))
+
+
+def test_flagged_and_duplicate_beams_are_dropped_with_a_warning(runs, tmp_path, caplog):
+    root, sim = runs[16]
+    spots = tmp_path / "spots"
+    shutil.copytree(root / "spots", spots)
+    lines = (spots / "spots.csv").read_text().splitlines()
+    fields = lines[4].split(",")
+    lines[4] = ",".join(fields[:-1] + ["multiple=0.4"])                     # beam 3 flagged
+    f7, f8 = lines[8].split(","), lines[9].split(",")
+    lines[9] = ",".join([f8[0], str(float(f7[1]) + 0.5), f7[2]] + f8[3:])   # beam 8 on top of beam 7
+    (spots / "spots.csv").write_text("\n".join(lines) + "\n")
+    summary = build_isf(sim / "hdr", spots, tmp_path / "isf", workers=1)
+    assert [d["beam"] for d in summary["drops"]] == [3, 8]
+    assert "flagged: multiple=0.4" in summary["drops"][0]["reason"]
+    assert "near-duplicate" in summary["drops"][1]["reason"]
+    assert "dropping beam 3" in caplog.text and "dropping beam 8" in caplog.text
+    isf = load_isf(tmp_path / "isf")
+    assert isf.m == 14 and isf.layout == (1, 16) and list(isf.beams[:4]) == [0, 1, 2, 4]
+    manifest = json.loads((tmp_path / "isf" / "manifest.json").read_text())
+    assert manifest["drops"] == summary["drops"]
+    # a photo still decomposes, shown on the plan's strip with gaps
+    run("decompose", "--isf", tmp_path / "isf", sim / "photos" / "room.exr", "-o", tmp_path / "dec", "--no-cache")
+    strip, _ = read_exr(tmp_path / "dec" / "room" / "bounce-1.exr")
+    assert strip.shape[:2] == (1, 16) and strip[0, 3, 0] == 0 and strip[0, 2, 0] > 0
+
+
+def _copy_hdr(runs, tmp_path):
+    hdr = tmp_path / "hdr"
+    shutil.copytree(runs[16][1] / "hdr", hdr)
+    return hdr
+
+
+@pytest.mark.parametrize("case", ["truncated", "sizes", "missing", "empty", "spots-beam"])
+def test_bad_input_fails_cleanly(runs, tmp_path, case):
+    root, _ = runs[16]
+    hdr = _copy_hdr(runs, tmp_path)
+    out = tmp_path / "out"
+    if case == "truncated":
+        data = (hdr / "beam-00005.exr").read_bytes()
+        (hdr / "beam-00005.exr").write_bytes(data[: len(data) // 2])
+        result = run("centroids", hdr, "-o", out, "--workers", 1, ok=False)
+        named = "beam-00005.exr"
+    elif case == "sizes":
+        write_exr(hdr / "beam-00007.exr", np.zeros((5, 5), np.float32))
+        result = run("centroids", hdr, "-o", out, "--workers", 1, ok=False)
+        named = "beam-00007.exr"
+    elif case == "missing":
+        (hdr / "beam-00009.exr").unlink()
+        result = run("centroids", hdr, "-o", out, "--workers", 1, ok=False)
+        named = "beam 9"
+    elif case == "empty":
+        empty = tmp_path / "empty"
+        empty.mkdir()
+        result = run("centroids", empty, "-o", out, ok=False)
+        named = str(empty)
+    else:
+        spots = tmp_path / "spots"
+        shutil.copytree(root / "spots", spots)
+        with open(spots / "spots.csv", "a") as f:
+            f.write("16,5.0,5.0,1.0,1.0,4,\n")
+        result = run("build-isf", hdr, spots, "-o", out, "--workers", 1, ok=False)
+        named = "beam 16"
+    assert result.exit_code == 1
+    message = result.output.strip().splitlines()[-1]
+    assert message.startswith("ilt: error:") and named in message, result.output
+    assert not out.exists() and not any(p.name.startswith(".out") for p in tmp_path.iterdir())

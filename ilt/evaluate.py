@@ -55,3 +55,13 @@ def relative_errors(computed: np.ndarray, truth: np.ndarray) -> np.ndarray:
     num = np.sqrt(np.sum((computed - truth) ** 2, axis=axes))
     den = np.sqrt(np.sum(truth**2, axis=axes))
     return num / np.where(den > 0, den, 1.0)
+
+
+def noise_amplification(T: np.ndarray, noisy_T: np.ndarray, computed: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Error amplification per bounce: ``(||Ln - Ln*|| / ||Ln*||) / (||dT||_F / ||T||_F)``.
+
+    ``computed`` and ``truth`` are (N, m[, k]) bounces from the noisy and the true T;
+    a value of 5 means the n-th bounce is 5 times as wrong, relatively, as T.
+    """
+    relative_noise = np.linalg.norm(noisy_T - T) / np.linalg.norm(T)
+    return relative_errors(computed, truth) / relative_noise

@@ -11,12 +11,13 @@ import contextlib
 import json
 import math
 import os
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
+
+from ilt.manifest import atomic_path
 
 # Lossless for float32 pixels. pxr24 rounds float32 to 24 bits, b44/b44a and
 # dwaa/dwab are lossy: a radiometric pipeline must not store data through them.
@@ -37,34 +38,17 @@ class ImageError(ValueError):
 
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside `path`, moved onto `path` when the block succeeds.
+    """:func:`ilt.manifest.atomic_path` with failures reported as ImageError naming `path`.
 
-    The temporary name keeps the suffix of `path` (``.name.tmp-XXXX.exr``) so that
-    writers which pick a format from the extension still do. On success the file is
-    fsynced and renamed into place with `os.replace`; on any exception it is removed
-    and `path` is left untouched.
-
-    Raises ImageError if the directory of `path` does not exist or cannot be written.
+    The temporary name keeps the suffix of `path` so that writers which pick a format
+    from the extension still do; on any exception `path` is left untouched.
     """
     path = Path(path)
     try:
-        fd, tmp_name = tempfile.mkstemp(
-            dir=path.parent, prefix=f".{path.name}.tmp-", suffix=path.suffix
-        )
+        with atomic_path(path) as tmp:
+            yield tmp
     except OSError as exc:
-        raise ImageError(f"{path}: cannot create a file in {path.parent}: {exc.strerror}") from exc
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
-        yield tmp
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            raise ImageError(f"{path}: write failed: {exc}") from exc
-        raise
+        raise ImageError(f"{path}: write failed: {exc.strerror or exc}") from exc
 
 
 def write_exr(

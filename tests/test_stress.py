@@ -1,0 +1,114 @@
+"""Numerical stress cases (issue 6): each result is right within a stated bound, or the
+run warns with the figure that explains why."""
+
+import numpy as np
+import pytest
+
+from ilt.bench import scene_batch
+from ilt.evaluate import noise_amplification, relative_errors
+from ilt.sim import make_scene
+from ilt.transport import bounce_images, cancellation_operator, operator_diagnostics
+
+
+def closed_enclosure(m, albedo, seed=0):
+    """A transport with every row of K summing to 1 (no light escapes): rho(A) = albedo."""
+    rng = np.random.default_rng(seed)
+    K = rng.uniform(0, 1, (m, m))
+    np.fill_diagonal(K, 0)
+    K /= K.sum(axis=1, keepdims=True)
+    A = albedo * K
+    D = rng.uniform(0.5, 1.0, m)
+    return A, np.linalg.solve(np.eye(m) - A, np.diag(D))
+
+
+@pytest.mark.parametrize("albedo", [0.9, 0.99, 0.999])
+def test_albedo_near_one(albedo):
+    """Spectral radius of A -> 1: the bounces decay slowly, yet each is exact to
+    ~eps * cond(T), and the diagnostics report rho."""
+    A, T = closed_enclosure(150, albedo)
+    op = cancellation_operator(T)
+    d = operator_diagnostics(T, op)
+    assert d["spectral_radius_A"] == pytest.approx(albedo, rel=1e-6)
+    L1 = np.random.default_rng(1).uniform(size=150)
+    L = np.linalg.solve(np.eye(150) - A, L1)
+    truth = [L1]
+    for _ in range(19):
+        truth.append(A @ truth[-1])
+    errors = relative_errors(bounce_images(op, L, 20).bounces, np.stack(truth))
+    assert errors.max() <= 1e-13 * d["condition_estimate"] * 20
+
+
+def test_dark_patches():
+    """Albedo 1e-3 on some points: their T columns are tiny before normalisation."""
+    scene = make_scene("textured", beams=128)
+    # every 7th point gets albedo 1e-3: its row of A = P K and its direct light scale with it
+    factor = np.ones(128)
+    factor[::7] = 1e-3 / scene.albedo[::7]
+    A = scene.A * factor[:, None]
+    direct = scene.direct * factor
+    T = np.linalg.solve(np.eye(128) - A, np.diag(direct))
+    op = cancellation_operator(T)
+    np.testing.assert_allclose(op.apply(np.eye(128)), np.eye(128) - A, atol=1e-12)
+    np.testing.assert_allclose(op.t1, direct, rtol=1e-12)
+
+
+def test_two_beams_almost_on_one_point_warn_with_condition():
+    """Two beams 0.1 px apart see nearly the same column: T is near-singular and the
+    diagnostics say so with the condition estimate."""
+    scene = make_scene("m", beams=64)
+    T, _ = scene.isf()
+    T = T.copy()
+    T[:, 11] = T[:, 10] + 1e-11 * T[:, 11]
+    op = cancellation_operator(T)
+    d = operator_diagnostics(T, op)
+    assert d["condition_estimate"] > 1e10
+    assert any("condition estimate" in w for w in d["warnings"])
+
+
+def test_missing_beam_folds_into_direct_light():
+    """A point with no beam acts like an occluded one (paper Sec. 3.1.2): C1 of the
+    reduced T equals the collapsed transport exactly."""
+    scene = make_scene("box", beams=192)
+    keep = np.setdiff1d(np.arange(scene.m), [5, 77, 150])
+    gone = np.setdiff1d(np.arange(scene.m), keep)
+    A = scene.A
+    Avv, Avh, Ahv, Ahh = A[np.ix_(keep, keep)], A[np.ix_(keep, gone)], A[np.ix_(gone, keep)], A[np.ix_(gone, gone)]
+    collapsed = Avv + Avh @ np.linalg.solve(np.eye(len(gone)) - Ahh, Ahv)
+    self_loops = np.diag(collapsed)
+    A_eff = (collapsed - np.diag(self_loops)) / (1 - self_loops)[:, None]
+    T_full = np.linalg.solve(np.eye(scene.m) - A, np.diag(scene.direct))
+    op = cancellation_operator(T_full[np.ix_(keep, keep)])
+    np.testing.assert_allclose(op.apply(np.eye(len(keep))), np.eye(len(keep)) - A_eff, atol=1e-13)
+
+
+@pytest.mark.parametrize("bits, bound", [(8, 0.1), (12, 0.01), (16, 5e-4)])
+def test_quantised_t(bits, bound):
+    """T stored with b bits: bounce errors stay within ~6 times the quantisation noise
+    (measured amplification 1-6 per bounce), stated as `bound`."""
+    scene = make_scene("m", beams=128)
+    T, _ = scene.isf()
+    photos, truth = scene_batch(scene, 4, 4)
+    levels = 2**bits - 1
+    Tq = np.round(T / T.max() * levels) / levels * T.max()
+    computed = bounce_images(cancellation_operator(Tq), photos, 4).bounces
+    assert relative_errors(computed, truth).max() <= bound
+    amplification = noise_amplification(T, Tq, computed, truth)
+    assert np.all(amplification < 10)
+
+
+def test_noise_sweep_amplification_is_bounded():
+    """Gaussian noise sigma in T: the error of each bounce grows linearly with sigma
+    (amplification independent of sigma within 20%)."""
+    scene = make_scene("box", beams=192)
+    T, _ = scene.isf()
+    photos, truth = scene_batch(scene, 4, 4)
+    rng = np.random.default_rng(0)
+    noise = rng.normal(size=T.shape)
+    amps = []
+    for sigma in (1e-6, 1e-5, 1e-4):
+        Tn = T + sigma * noise * np.abs(T).max()
+        computed = bounce_images(cancellation_operator(Tn), photos, 4).bounces
+        amps.append(noise_amplification(T, Tn, computed, truth))
+    amps = np.array(amps)
+    np.testing.assert_allclose(amps[1:], amps[:1].repeat(2, axis=0), rtol=0.2)
+    assert amps.max() < 50

@@ -1,14 +1,17 @@
-"""Run time and error of the operators + decomposition against a bare scipy baseline.
+"""Run time against error: solvers of ``C1`` + bounce decomposition, timed in one process.
 
-For each size m: build a simulated scene, then time (median of repeats, same process)
+For each scene, size m and noise level sigma (Gaussian, relative to max |T|) the
+benchmark times, as the median of repeats,
 
-- ``ilt``: ``cancellation_operator(T)`` (getrf + in-place trtri, diag(T^-1) from the
-  factors) and ``bounce_images`` of a batch of photos;
-- ``scipy``: ``scipy.linalg.inv(T)`` (getrf + getri), ``C1 = T1 T^-1`` formed
-  explicitly, then the bounce recursion with matrix products;
+- ``scipy``: the bare baseline, ``scipy.linalg.inv(T)`` (getrf + getri), ``C1 = T1 T^-1``
+  formed, then the bounce recursion with matrix products;
+- each ilt solver (``dense``, ``mixed``, ``blocks``; see :mod:`ilt.solvers`): build the
+  operator and split a batch of photos into N bounces;
 
-and the error of each against the simulator's exact truth: ``max_n ||Ln - Ln*|| /
-||Ln*||`` over the batch, and the relative error of ``diag(T1)``.
+and measures each against the simulator's exact truth: the worst relative error of
+any bounce ``max_n ||Ln - Ln*|| / ||Ln*||``, the error per bounce, the relative error
+of ``diag(T1)``, the closure error, the error amplification (bounce error over the
+relative noise in T) and the peak memory it allocates (tracemalloc).
 """
 
 from __future__ import annotations
@@ -23,32 +26,30 @@ import scipy.linalg
 
 from ilt.evaluate import relative_errors
 from ilt.sim import ILLUMINATIONS, make_scene
-from ilt.transport import bounce_images, cancellation_operator
+from ilt.solvers import build_operator
+from ilt.transport import bounce_images
 
 QUICK_SIZES = (256, 512, 1024)
 FULL_SIZES = (256, 512, 1024, 2048, 4096)
+SOLVERS = ("scipy", "dense", "mixed", "blocks")
 
 
 @dataclass
 class BenchRow:
     scene: str
     m: int
+    noise: float
+    solver: str
     batch: int
     bounces: int
-    ilt_seconds: float
-    scipy_seconds: float
-    ratio: float
-    ilt_peak_mib: float
-    scipy_peak_mib: float
-    ilt_bounce_error: float
-    scipy_bounce_error: float
-    ilt_t1_error: float
-    scipy_t1_error: float
-
-
-def _ilt(T, photos, n_bounces):
-    op = cancellation_operator(T)
-    return op.t1, bounce_images(op, photos, n_bounces).bounces
+    seconds: float
+    ratio_to_scipy: float
+    peak_mib: float
+    bounce_error: float
+    bounce_errors: list
+    t1_error: float
+    closure_error: float
+    amplification: float
 
 
 def _scipy(T, photos, n_bounces):
@@ -60,7 +61,15 @@ def _scipy(T, photos, n_bounces):
         ln = C1 @ r
         r -= ln
         out.append(ln)
-    return t1, np.stack(out)
+    return t1, np.stack(out), r
+
+
+def _solver(name):
+    def run(T, photos, n_bounces):
+        op, _ = build_operator(T, name)
+        dec = bounce_images(op, photos, n_bounces)
+        return op.t1, dec.bounces, dec.residual
+    return run
 
 
 def _median_time(fn, repeats: int, *args):
@@ -95,74 +104,95 @@ def scene_batch(scene, batch: int, n_bounces: int, seed: int = 0):
     return photos, truth
 
 
-def bench_size(scene_name: str, m: int, batch: int = 16, n_bounces: int = 8, repeats: int = 3) -> BenchRow:
+def bench_case(scene_name: str, m: int, noise: float = 0.0, solvers=SOLVERS, batch: int = 16,
+               n_bounces: int = 8, repeats: int = 3, seed: int = 0) -> list[BenchRow]:
+    """One scene, size and noise level: a row per solver, the scipy baseline first."""
     scene = make_scene(scene_name, beams=m)
     T, scale = scene.isf()
     t1_true = scene.direct / scale
-    photos, truth = scene_batch(scene, batch, n_bounces)
-    ilt_s, (ilt_t1, ilt_b) = _median_time(_ilt, repeats, T, photos, n_bounces)
-    sp_s, (sp_t1, sp_b) = _median_time(_scipy, repeats, T, photos, n_bounces)
-    return BenchRow(
-        scene=scene_name, m=scene.m, batch=batch, bounces=n_bounces,
-        ilt_seconds=ilt_s, scipy_seconds=sp_s, ratio=ilt_s / sp_s,
-        ilt_peak_mib=_peak_mib(_ilt, T, photos, n_bounces),
-        scipy_peak_mib=_peak_mib(_scipy, T, photos, n_bounces),
-        ilt_bounce_error=float(relative_errors(ilt_b, truth).max()),
-        scipy_bounce_error=float(relative_errors(sp_b, truth).max()),
-        ilt_t1_error=float(np.max(np.abs(ilt_t1 - t1_true) / t1_true)),
-        scipy_t1_error=float(np.max(np.abs(sp_t1 - t1_true) / t1_true)),
-    )
+    photos, truth = scene_batch(scene, batch, n_bounces, seed)
+    noisy = T + noise * np.abs(T).max() * np.random.default_rng(seed + 1).normal(size=T.shape) if noise else T
+    relative_noise = np.linalg.norm(noisy - T) / np.linalg.norm(T)
+    rows, baseline = [], None
+    for name in ("scipy", *[s for s in solvers if s != "scipy"]):
+        fn = _scipy if name == "scipy" else _solver(name)
+        seconds, (t1, bounces, residual) = _median_time(fn, repeats, noisy, photos, n_bounces)
+        baseline = seconds if name == "scipy" else baseline
+        errors = relative_errors(bounces, truth)
+        closure = np.linalg.norm(photos - bounces.sum(axis=0) - residual) / np.linalg.norm(photos)
+        rows.append(BenchRow(
+            scene=scene_name, m=scene.m, noise=noise, solver=name, batch=batch, bounces=n_bounces,
+            seconds=seconds, ratio_to_scipy=seconds / baseline, peak_mib=_peak_mib(fn, noisy, photos, n_bounces),
+            bounce_error=float(errors.max()), bounce_errors=errors.tolist(),
+            t1_error=float(np.max(np.abs(t1 - t1_true) / t1_true)),
+            closure_error=float(closure),
+            amplification=float(errors.max() / relative_noise) if relative_noise > 0 else 0.0,
+        ))
+    return rows
+
+
+def run_bench(sizes, scenes=("box",), noises=(0.0,), solvers=SOLVERS, batch: int = 16, n_bounces: int = 8,
+              repeats: int = 3, progress=None) -> list[BenchRow]:
+    rows = []
+    for scene in scenes:
+        for m in sizes:
+            for noise in noises:
+                case = bench_case(scene, m, noise, solvers, batch, n_bounces, repeats)
+                rows.extend(case)
+                if progress:
+                    for r in case:
+                        progress(r)
+    return rows
+
+
+HEADER = (f"{'scene':>8} {'m':>5} {'noise':>7} {'solver':>7} {'seconds':>8} {'/scipy':>6} {'MiB':>6} "
+          f"{'bounce err':>10} {'T1 err':>8} {'closure':>8} {'amplif':>7}")
+
+
+def format_row(r: BenchRow) -> str:
+    return (f"{r.scene:>8} {r.m:>5} {r.noise:>7.0e} {r.solver:>7} {r.seconds:>8.3f} {r.ratio_to_scipy:>6.2f} "
+            f"{r.peak_mib:>6.0f} {r.bounce_error:>10.2e} {r.t1_error:>8.1e} {r.closure_error:>8.1e} "
+            f"{r.amplification:>7.2f}")
 
 
 def format_table(rows: list[BenchRow]) -> str:
-    head = (f"{'scene':>6} {'m':>5} {'ilt s':>8} {'scipy s':>8} {'ratio':>6} {'ilt MiB':>8} {'scipy MiB':>9} "
-            f"{'ilt err':>9} {'scipy err':>9} {'ilt T1 err':>10}")
-    lines = [head]
-    for r in rows:
-        lines.append(
-            f"{r.scene:>6} {r.m:>5} {r.ilt_seconds:>8.3f} {r.scipy_seconds:>8.3f} {r.ratio:>6.2f} "
-            f"{r.ilt_peak_mib:>8.0f} {r.scipy_peak_mib:>9.0f} {r.ilt_bounce_error:>9.1e} "
-            f"{r.scipy_bounce_error:>9.1e} {r.ilt_t1_error:>10.1e}"
-        )
-    return "\n".join(lines)
+    return "\n".join([HEADER, *map(format_row, rows)])
 
 
 def plot(rows: list[BenchRow], path) -> None:
-    """Run time against m (log-log) and error against run time, one curve per solver."""
+    """Left: run time against error, one curve per solver (log-log), points along m.
+    Right: worst bounce error against the noise in T, one curve per solver."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.ticker import NullFormatter
 
     from ilt.manifest import atomic_path
 
-    fig = Figure(figsize=(10, 4))
+    fig = Figure(figsize=(11, 4.5))
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(1, 2)
-    ms = [r.m for r in rows]
-    for label, t, e in (("ilt (getrf + trtri)", "ilt_seconds", "ilt_bounce_error"),
-                        ("scipy (inv + products)", "scipy_seconds", "scipy_bounce_error")):
-        ax1.loglog(ms, [getattr(r, t) for r in rows], "o-", label=label)
-        ax2.loglog([getattr(r, t) for r in rows], [max(getattr(r, e), 1e-17) for r in rows], "o-", label=label)
-    ax1.set(xlabel="m (beams)", ylabel="seconds (median)",
-            title=f"operators + {rows[0].bounces} bounces, batch of {rows[0].batch}")
-    ax1.set_xticks(ms, labels=[str(m) for m in ms])
-    ax1.xaxis.set_minor_formatter(NullFormatter())
-    ax2.set(xlabel="seconds (median)", ylabel="max relative bounce error", title="error against run time")
+    solvers = list(dict.fromkeys(r.solver for r in rows))
+    clean = [r for r in rows if r.noise == 0]
+    for solver in solvers:
+        pts = sorted((r.seconds, max(r.bounce_error, 1e-17), r.m) for r in clean if r.solver == solver)
+        if pts:
+            ax1.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=solver)
+            for s, e, m in pts:
+                ax1.annotate(str(m), (s, e), fontsize=7, alpha=0.6)
+        noisy = sorted((r.noise, r.bounce_error) for r in rows if r.solver == solver and r.noise > 0
+                       and r.m == max(x.m for x in rows))
+        if noisy:
+            ax2.loglog([p[0] for p in noisy], [p[1] for p in noisy], "o-", label=solver)
+    ax1.set(xlabel="seconds (median)", ylabel="worst relative bounce error",
+            title="run time against error (noise-free; labels: m)")
+    ax2.set(xlabel="noise in T (relative to max |T|)", ylabel="worst relative bounce error",
+            title=f"error against noise (m = {max(r.m for r in rows)})")
     for ax in (ax1, ax2):
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend()
+        if ax.has_data():
+            ax.legend()
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
-
-
-def run_bench(sizes, scene: str = "box", batch: int = 16, n_bounces: int = 8, repeats: int = 3, progress=None):
-    rows = []
-    for m in sizes:
-        rows.append(bench_size(scene, m, batch, n_bounces, repeats))
-        if progress:
-            progress(rows[-1])
-    return rows
 
 
 def rows_json(rows: list[BenchRow]) -> list[dict]:

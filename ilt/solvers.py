@@ -19,8 +19,6 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from ilt.transport import (
     CancellationOperator,
@@ -129,17 +127,29 @@ class BlockOperator:
 def independent_groups(T: np.ndarray, threshold: float = 0.0) -> list[np.ndarray]:
     """Groups of points that exchange no light: connected components of the graph with
     an edge i-j when ``|T[i, j]| > threshold`` or ``|T[j, i]| > threshold`` (T with unit
-    columns). Returns index arrays, largest first."""
+    columns). Returns index arrays, largest first.
+
+    Breadth-first search a frontier at a time: O(m^2) reads and no edge list, so a
+    connected T costs one pass and memory m x (frontier size) in 512-wide chunks.
+    """
     T, norms = prepare_isf(T)
-    rows, cols = [], []
-    for j0 in range(0, T.shape[1], 512):  # column blocks keep the temporary small
-        r, c = np.nonzero(np.abs(T[:, j0:j0 + 512]) > threshold * norms[j0:j0 + 512])
-        rows.append(r)
-        cols.append(c + j0)
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
-    graph = csr_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=T.shape)
-    count, labels = connected_components(graph, directed=True, connection="weak")
-    groups = [np.flatnonzero(labels == k) for k in range(count)]
+    m = T.shape[0]
+    unseen = np.ones(m, dtype=bool)
+    groups = []
+    while unseen.any():
+        start = int(np.argmax(unseen))
+        unseen[start] = False
+        group, frontier = [start], np.array([start])
+        while frontier.size:
+            reached = np.zeros(m, dtype=bool)
+            for k in range(0, frontier.size, 512):
+                f = frontier[k:k + 512]
+                reached |= np.any(np.abs(T[:, f]) > threshold * norms[f], axis=1)  # light from f
+                reached |= np.any(np.abs(T[f, :]) > threshold * norms, axis=0)  # light into f
+            frontier = np.flatnonzero(reached & unseen)
+            unseen[frontier] = False
+            group.extend(frontier.tolist())
+        groups.append(np.sort(np.array(group)))
     return sorted(groups, key=len, reverse=True)
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
 
 from ilt.imageio import write_exr
 from ilt.isf import write_isf

@@ -11,7 +11,6 @@ medians of --repeat runs. Prints one line per figure.
 from __future__ import annotations
 
 import argparse
-import resource
 import shutil
 import statistics
 import tempfile
@@ -122,10 +121,28 @@ def throughput(tmp: Path, beams: int, width: int, height: int, repeat: int, rng)
     t_decode = timed(decode)
     t1 = timed(merge, 1)
     t2 = timed(merge, 2)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"throughput {beams} beams x {len(PAPER_BRACKET)} DNG of {width} x {height}: decode only "
           f"{t_decode:.2f} s, merge 1 worker {t1:.2f} s ({t1 / t_decode:.2f}x decode), "
-          f"2 workers {t2:.2f} s (speed-up {t1 / t2:.2f}x); peak RSS of this process {peak:.0f} MiB")
+          f"2 workers {t2:.2f} s (speed-up {t1 / t2:.2f}x)")
+    peaks = [peak_memory(tmp, n) for n in sorted({max(1, beams // 4), beams})]
+    print("peak RSS of a one-worker merge process: " + ", ".join(f"{n} beams {m:.0f} MiB" for n, m in peaks))
+
+
+def peak_memory(tmp: Path, beams: int) -> tuple[int, float]:
+    """(beams, MiB): maximum resident size of a fresh process merging the first ``beams``."""
+    import subprocess
+    import sys
+
+    cap = tmp / f"cap-{beams}"
+    cap.mkdir()
+    for b in sorted((tmp / "cap").glob("beam-*"))[:beams]:
+        (cap / b.name).symlink_to(b)
+    code = ("import resource, sys; from ilt.hdr.stages import merge_capture; "
+            "merge_capture(sys.argv[1], sys.argv[2]); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    out = subprocess.run([sys.executable, "-c", code, str(cap), str(tmp / f"hdr-{beams}")],
+                         check=True, capture_output=True, text=True).stdout
+    return beams, int(out.split()[-1]) / 1024
 
 
 def main():

@@ -173,7 +173,8 @@ def plot(rows: list[BenchRow], path) -> None:
     solvers = list(dict.fromkeys(r.solver for r in rows))
     clean = [r for r in rows if r.noise == 0]
     for solver in solvers:
-        pts = sorted((r.seconds, max(r.bounce_error, 1e-17), r.m) for r in clean if r.solver == solver)
+        pts = [(r.seconds, max(r.bounce_error, 1e-17), r.m) for r in sorted(clean, key=lambda r: r.m)
+               if r.solver == solver]
         if pts:
             ax1.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=solver)
             for s, e, m in pts:

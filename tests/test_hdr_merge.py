@@ -44,10 +44,10 @@ def test_merge_matches_cramer_rao_bound_over_the_range():
     rel = np.sqrt((((R - X) / X) ** 2).mean(axis=0))
     bound = np.sqrt(cramer_rao_bound(X[0], e, 0.97 * sensor.full_scale, noise)) / X[0]
     ratio = rel / bound
-    # 300 samples per column: +-8 % scatter on each ratio; a column whose mean sits at a
-    # saturation threshold loses the sample about half the time, which the bound counts
-    assert np.percentile(ratio, 90) < 1.2 and ratio.max() < 1.5, ratio
-    assert abs(np.mean(ratio) - 1) < 0.06
+    # 300 samples per column: +-4 % scatter on each ratio. The bound averages over which
+    # samples clip, so columns whose level sits at a saturation threshold are no exception
+    assert ratio.max() < 1.2 and np.percentile(ratio, 90) < 1.1, ratio
+    assert abs(np.mean(ratio) - 1) < 0.03
 
 
 def test_all_saturated_and_all_black_are_errors():

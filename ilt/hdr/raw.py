@@ -74,6 +74,7 @@ def read_green(
     hand_time=None,
     margin: float = SATURATION_MARGIN,
     data: bytes | None = None,
+    dtype=np.float64,
 ) -> tuple[np.ndarray, GreenInfo]:
     """Decode a Bayer RAW file to its green image.
 
@@ -85,17 +86,27 @@ def read_green(
     margin : fraction of the black-to-white range below the white level at which
         samples count as saturated.
     data : the file's bytes, if already read (one read serves hashing and decoding).
+    dtype : of ``green``; float32 halves the memory and time of a merge.
 
     Returns
     -------
-    green : (H/2, W/2) float64, black-subtracted DN: mean of the two green sites.
+    green : (H/2, W/2) ``dtype``, black-subtracted DN: mean of the two green sites.
     info : GreenInfo (exposure facts, levels, saturation mask, coordinate mapping).
 
     Raises RawError (or ExposureError) with a one-line message naming ``path``.
     """
     path = Path(path)
     source = io.BytesIO(data) if data is not None else path
-    mosaic, meta = _decode(path, source)
+    meta = _decode(path, source, margin, dtype)
+    green, saturated, white, saturation = meta.pop("green")
+    facts = resolve_facts(path, exposure_time, f_number, meta["tags"], meta["other"], hand_time)
+    info = GreenInfo(path, facts, meta["make"], meta["model"], meta["shape"], meta["cell"],
+                     tuple(meta["black"]), float(white), float(meta["white"]), float(saturation), saturated)
+    return green, info
+
+
+def _green(path: Path, mosaic: np.ndarray, meta: dict, margin: float, dtype):
+    """(green, saturated, white, saturation) from the visible mosaic, read in place."""
     cell = meta["cell"]
     greens = [k for k in range(4) if cell[k] == "G"]
     if len(greens) != 2 or greens not in ([0, 3], [1, 2]):
@@ -105,13 +116,14 @@ def read_green(
     g = [mosaic[k // 2:rows:2, k % 2:cols:2] for k in greens]
     white = _effective_white(path, mosaic, meta["white"])
     black_g = (black[greens[0]] + black[greens[1]]) / 2
-    saturation = (white - max(black[greens[0]], black[greens[1]])) * (1.0 - margin)
-    green = (g[0].astype(np.float64) + g[1]) * 0.5 - black_g
-    saturated = np.maximum(g[0], g[1]) >= saturation + max(black[greens[0]], black[greens[1]])
-    facts = resolve_facts(path, exposure_time, f_number, meta["tags"], meta["other"], hand_time)
-    info = GreenInfo(path, facts, meta["make"], meta["model"], mosaic.shape, cell,
-                     tuple(black), float(white), float(meta["white"]), float(saturation), saturated)
-    return green, info
+    top_black = max(black[greens[0]], black[greens[1]])
+    saturation = (white - top_black) * (1.0 - margin)
+    green = g[0].astype(dtype)
+    green += g[1]
+    green *= 0.5
+    green -= black_g
+    saturated = np.maximum(g[0], g[1]) >= saturation + top_black
+    return green, saturated, white, saturation
 
 
 def read_color(path: str | os.PathLike, margin: float = SATURATION_MARGIN,
@@ -148,8 +160,10 @@ def read_color(path: str | os.PathLike, margin: float = SATURATION_MARGIN,
     return rgb[: rows // 2, : cols // 2].astype(np.float64) * scale, saturated
 
 
-def _decode(path: Path, source) -> tuple[np.ndarray, dict]:
-    """The visible mosaic (copied before the file closes), levels and EXIF tags, checked.
+def _decode(path: Path, source, margin: float, dtype) -> dict:
+    """Levels, EXIF tags and the `_green` image (under ``"green"``) of a RAW file, checked.
+    The green image is taken from the visible mosaic in place, before the file closes
+    (a copy of the whole mosaic would cost a third of the decode).
     ``source``: ``path`` or a binary file object holding its bytes."""
     import rawpy
 
@@ -165,8 +179,11 @@ def _decode(path: Path, source) -> tuple[np.ndarray, dict]:
             if pattern is None or pattern.shape != (2, 2):
                 raise RawError(f"{path}: CFA pattern {None if pattern is None else pattern.shape} "
                                "is not a 2x2 Bayer pattern")
-            mosaic = raw.raw_image_visible.copy()
-            colors = raw.raw_colors_visible[:2, :2].copy()
+            mosaic = raw.raw_image_visible
+            # the visible area's 2x2 pattern from the raw one; raw_colors_visible would
+            # build a full-frame array of colour indices for four values
+            top, left = raw.sizes.top_margin, raw.sizes.left_margin
+            colors = np.roll(pattern, (-top, -left), axis=(0, 1))
             black_per_channel = list(raw.black_level_per_channel)
             white = raw.camera_white_level_per_channel or [raw.white_level]
             meta = {
@@ -174,18 +191,20 @@ def _decode(path: Path, source) -> tuple[np.ndarray, dict]:
                 "black": [float(black_per_channel[c]) for c in colors.ravel()],
                 "white": float(min(white)),
                 "other": getattr(raw, "other", None),
-                "make": "", "model": "",
+                "make": "", "model": "", "shape": mosaic.shape,
             }
+            if mosaic.ndim != 2 or min(mosaic.shape) < 2:
+                raise RawError(f"{path}: raw image of shape {mosaic.shape} is not a 2D mosaic")
+            if meta["white"] <= max(meta["black"]):
+                raise RawError(f"{path}: white level {meta['white']} is not above black {max(meta['black'])}")
+            meta["green"] = _green(path, mosaic, meta, margin, dtype)
+            del mosaic
     except (rawpy.LibRawError, rawpy.NotSupportedError) as exc:
         raise RawError(f"{path}: not a RAW file LibRaw can decode ({_reason(exc)})") from None
-    if mosaic.ndim != 2 or min(mosaic.shape) < 2:
-        raise RawError(f"{path}: raw image of shape {mosaic.shape} is not a 2D mosaic")
-    if meta["white"] <= max(meta["black"]):
-        raise RawError(f"{path}: white level {meta['white']} is not above black {max(meta['black'])}")
     meta["tags"] = read_exif(source)
     meta["make"] = str(meta["tags"].get("Image Make", "")).strip()
     meta["model"] = str(meta["tags"].get("Image Model", "")).strip()
-    return mosaic, meta
+    return meta
 
 
 def _effective_white(path: Path, mosaic: np.ndarray, file_white: float) -> float:

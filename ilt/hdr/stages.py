@@ -87,7 +87,8 @@ def read_frame(path: Path, record: FrameRecord | None = None, hand_time=None, *,
         raise RawError(f"{path}: no such file") from None
     fingerprint = "sha256:" + hashlib.sha256(data).hexdigest()
     green, info = read_green(path, record.exposure_time if record else None,
-                             record.f_number if record else None, hand_time, margin, data=data)
+                             record.f_number if record else None, hand_time, margin, data=data,
+                             dtype=np.float32)
     image = green
     if color:
         image, saturated = read_color(path, margin, data=data)
@@ -240,9 +241,7 @@ def _run_beams(beams, out_dir, options, executor, workers) -> list[dict]:
     if executor is None and workers <= 1:
         return [merge_beam(b, out_dir, options) for b in beams]
     own = executor is None
-    # forkserver, not fork: LibRaw's OpenMP threads can deadlock a forked child
-    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("forkserver")) \
-        if own else executor
+    pool = process_pool(workers) if own else executor
     try:
         futures = [pool.submit(merge_beam, b, out_dir, options) for b in beams]
         try:
@@ -255,6 +254,18 @@ def _run_beams(beams, out_dir, options, executor, workers) -> list[dict]:
     finally:
         if own:
             pool.shutdown(wait=True, cancel_futures=True)
+
+
+def process_pool(workers: int) -> cf.ProcessPoolExecutor:
+    """A pool of ``workers`` processes for `merge_capture`.
+
+    forkserver, not fork: LibRaw's OpenMP threads can deadlock a forked child. The fork
+    server imports this module, rawpy, exifread and OpenCV once and forks every worker
+    from it, so a worker starts in milliseconds instead of re-importing for a second.
+    """
+    context = mp.get_context("forkserver")
+    context.set_forkserver_preload([__name__, "rawpy", "exifread", "cv2"])
+    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=context)
 
 
 def merge_files(paths: list[str | os.PathLike], output: str | os.PathLike,

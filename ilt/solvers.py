@@ -23,6 +23,7 @@ import numpy as np
 from ilt.transport import (
     CancellationOperator,
     TransportError,
+    UnitColumnOperator,
     cancellation_operator,
     check_photo,
     prepare_isf,
@@ -96,7 +97,7 @@ class MixedOperator:
 
 
 @dataclass(frozen=True)
-class BlockOperator:
+class BlockOperator(UnitColumnOperator):
     """``C1`` of a block-diagonal T (after permutation): one dense operator per block."""
 
     blocks: list[np.ndarray] = field(repr=False)
@@ -106,14 +107,6 @@ class BlockOperator:
     rcond: float
     threshold: float
     solver: str = "blocks"
-
-    @property
-    def m(self) -> int:
-        return self.t1_unit.shape[0]
-
-    @property
-    def t1(self) -> np.ndarray:
-        return self.t1_unit * self.column_norms
 
     def apply(self, values: np.ndarray) -> np.ndarray:
         check_photo(self.m, values)

@@ -46,8 +46,24 @@ class TransportError(ValueError):
     """An ISF matrix or sample vector the operators cannot be built from or applied to."""
 
 
+class UnitColumnOperator:
+    """What every back-end of ``C1`` derives from ``t1_unit`` and ``column_norms``."""
+
+    t1_unit: np.ndarray
+    column_norms: np.ndarray
+
+    @property
+    def m(self) -> int:
+        return self.t1_unit.shape[0]
+
+    @property
+    def t1(self) -> np.ndarray:
+        """Diagonal of ``T1`` for the column scaling of the ``T`` given (C1 is the same)."""
+        return self.t1_unit * self.column_norms
+
+
 @dataclass(frozen=True)
-class CancellationOperator:
+class CancellationOperator(UnitColumnOperator):
     """``C1 = T1 T^-1`` (paper Eq. 13) in factored form.
 
     Attributes
@@ -71,16 +87,6 @@ class CancellationOperator:
     t1_unit: np.ndarray = field(repr=False)
     column_norms: np.ndarray = field(repr=False)
     rcond: float
-
-    @property
-    def m(self) -> int:
-        return self.t1_unit.shape[0]
-
-    @property
-    def t1(self) -> np.ndarray:
-        """Diagonal of ``T1`` for the column scaling of the ``T`` given (C1 is the same)."""
-        return self.t1_unit * self.column_norms
-
     solver: str = "dense"
 
     def solve(self, b: np.ndarray) -> np.ndarray:

@@ -6,7 +6,8 @@ benchmark times, as the median of repeats,
 - ``scipy``: the bare baseline, ``scipy.linalg.inv(T)`` (getrf + getri), ``C1 = T1 T^-1``
   formed, then the bounce recursion with matrix products;
 - each ilt solver (``dense``, ``mixed``, ``blocks``; see :mod:`ilt.solvers`): build the
-  operator and split a batch of photos into N bounces;
+  operator and split a batch of photos into N bounces; for noisy T also
+  ``regularised`` (:mod:`ilt.regularise`, with the true sigma, then ``dense``);
 
 and measures each against the simulator's exact truth: the worst relative error of
 any bounce ``max_n ||Ln - Ln*|| / ||Ln*||``, the error per bounce, the relative error
@@ -25,13 +26,14 @@ import numpy as np
 import scipy.linalg
 
 from ilt.evaluate import relative_errors
+from ilt.regularise import regularise_isf
 from ilt.sim import ILLUMINATIONS, make_scene
 from ilt.solvers import build_operator
 from ilt.transport import bounce_images
 
 QUICK_SIZES = (256, 512, 1024)
 FULL_SIZES = (256, 512, 1024, 2048, 4096)
-SOLVERS = ("scipy", "dense", "mixed", "blocks")
+SOLVERS = ("scipy", "dense", "mixed", "blocks", "regularised")
 
 
 @dataclass
@@ -64,9 +66,11 @@ def _scipy(T, photos, n_bounces):
     return t1, np.stack(out), r
 
 
-def _solver(name):
+def _solver(name, layout=None, noise=0.0):
     def run(T, photos, n_bounces):
-        op, _ = build_operator(T, name)
+        if name == "regularised":  # denoise T (discrepancy principle), then dense
+            T = regularise_isf(T, layout, noise)[0]
+        op, _ = build_operator(T, "dense" if name == "regularised" else name)
         dec = bounce_images(op, photos, n_bounces)
         return op.t1, dec.bounces, dec.residual
     return run
@@ -115,7 +119,9 @@ def bench_case(scene_name: str, m: int, noise: float = 0.0, solvers=SOLVERS, bat
     relative_noise = np.linalg.norm(noisy - T) / np.linalg.norm(T)
     rows, baseline = [], None
     for name in ("scipy", *[s for s in solvers if s != "scipy"]):
-        fn = _scipy if name == "scipy" else _solver(name)
+        if name == "regularised" and noise == 0:
+            continue  # nothing to remove
+        fn = _scipy if name == "scipy" else _solver(name, scene.layout, noise * np.abs(T).max())
         seconds, (t1, bounces, residual) = _median_time(fn, repeats, noisy, photos, n_bounces)
         baseline = seconds if name == "scipy" else baseline
         errors = relative_errors(bounces, truth)

@@ -184,7 +184,8 @@ def test_bench_writes_figures_with_errors_against_truth(tmp_path):
                  "-o", tmp_path / "b", "--json")
     rows = json.loads(result.stdout)
     assert {(r["m"], r["noise"], r["solver"]) for r in rows} == {
-        (m, n, s) for m in (48, 108) for n in (0.0, 1e-4) for s in ("scipy", "dense", "mixed", "blocks")}
+        (m, n, s) for m in (48, 108) for n in (0.0, 1e-4) for s in ("scipy", "dense", "mixed", "blocks")} | {
+        (m, 1e-4, "regularised") for m in (48, 108)}
     for r in rows:
         if r["noise"] == 0:
             bound = 1e-5 if r["solver"] == "mixed" else 1e-12

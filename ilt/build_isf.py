@@ -5,6 +5,10 @@ Column j of T is beam j's frame integrated over the cell of every kept spot
 (``sampling="point"``, the paper's method), then scaled to unit 2-norm; the scales
 are kept. Flagged beams and near-duplicate spots are dropped, each with its reason,
 so that beams, points and pixels stay one to one.
+
+Spots and ``samples.csv`` are in full-frame sensor pixels; the cells, and the frames
+they integrate, are on the HDR frame grid (half resolution after ``ilt merge``), whose
+mapping to full-frame pixels is recorded in ``cells.exr`` and the manifest.
 """
 
 from __future__ import annotations
@@ -15,8 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.cells import cell_index, integrate_indexed, voronoi_cells
-from ilt.frames import FrameError, beam_executor, chunks, open_hdr_directory, read_frame, run_chunks
+from ilt.cells import cell_operator, integrate_with, voronoi_cells
+from ilt.frames import (
+    FrameError,
+    beam_executor,
+    cached_frame,
+    chunks,
+    load_frame,
+    open_hdr_directory,
+    run_chunks,
+)
 from ilt.imageio import write_exr
 from ilt.isf import CELLS_FILE, SCALES_FILE, write_isf
 from ilt.manifest import read_manifest, save_npy, staged_directory, write_manifest
@@ -68,25 +80,51 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float) -> n
     return frame_sum > fraction * np.median(frame_sum[rows, cols])
 
 
-def _column_chunk(beams, files, shape, inside, rows, m):
-    """Worker: one column of raw T per frame, (m, len(beams)) float64."""
+def _column_chunk(beams, files, shape, sampler, m):
+    """Worker: one column of raw T per frame, (m, len(beams)) float64.
+
+    sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
+    the (m,) flat pixel indices of the samples (point sampling)."""
     out = np.empty((m, len(files)))
-    for k, path in enumerate(files):
-        out[:, k] = integrate_indexed(read_frame(path, shape), inside, rows, m)
+    if isinstance(sampler, (str, Path)):
+        operator = _cached_operator(sampler, m)
+        for k, path in enumerate(files):
+            out[:, k] = integrate_with(load_frame(path, shape), operator)
+    else:
+        for k, path in enumerate(files):
+            out[:, k] = load_frame(path, shape).ravel()[sampler]
     return out
+
+
+_OPERATOR_CACHE: dict = {}
+
+
+def _cached_operator(path, m):
+    """The cell operator of ``cells.exr`` at ``path``, built once per worker process."""
+    from ilt.isf import read_cells
+
+    key = (str(path), os.stat(path).st_mtime_ns, m)
+    if key not in _OPERATOR_CACHE:
+        _OPERATOR_CACHE.clear()
+        _OPERATOR_CACHE[key] = cell_operator(read_cells(Path(path), m), m)
+    return _OPERATOR_CACHE[key]
 
 
 def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str | os.PathLike,
               sampling: str = "cell", min_separation: float = 2.0, lit_fraction: float = 1e-3,
               max_cell_radius: float | None = None, executor=None, workers: int | None = None,
-              chunk: int = 16, progress=None, force: bool = False) -> dict:
+              chunk: int = 16, progress=None, force: bool = False, frame_cache=None) -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
-    the raw T (frame units x pixels), samples.csv (plan beam, centroid x, y), cells.exr
-    ((H, W) row of T per pixel, -1 outside; cell sampling only), T.png and manifest.json
-    (plan layout, kept beams, every drop with its reason). ``max_cell_radius`` defaults
-    to 2 x the median distance between neighbouring kept spots.
+    the raw T (frame units x frame pixels), samples.csv (plan beam, centroid x, y in
+    full-frame pixels), cells.exr ((H, W) row of T per pixel of the frame grid, -1
+    outside, with the grid's pixel mapping; cell sampling only), T.png and
+    manifest.json (plan layout, frame shape, pixel mapping, kept beams, every drop with
+    its reason). ``frame_cache``: frames kept by a preceding centroids run over the same
+    HDR directory (:func:`centroids_and_isf`), read instead of the EXR files.
+    ``min_separation`` is in full-frame pixels; ``max_cell_radius`` in
+    frame-grid pixels, by default 2 x the median distance between neighbouring kept spots.
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
@@ -103,45 +141,52 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         raise BuildError(f"{spots_dir / SPOTS_FILE}: {len(kept)} usable spots; an ISF needs at least 2")
     plan = [beams[i] for i in kept]
     centroids = np.array([[spots[i].x, spots[i].y] for i in kept])
+    on_grid = hdr.mapping.to_grid(centroids)
     m = len(plan)
     labels = None
     if sampling == "cell":
-        frame_sum = _read_sum(spots_dir, hdr.frame_shape)
-        lit = None if frame_sum is None else lit_mask(frame_sum, centroids, lit_fraction)
+        frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
+        lit = None if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction)
         if max_cell_radius is None:
             from scipy.spatial import cKDTree
 
-            nn = cKDTree(centroids).query(centroids, k=2)[0][:, 1]
+            nn = cKDTree(on_grid).query(on_grid, k=2)[0][:, 1]
             max_cell_radius = 2.0 * float(np.median(nn))
-        labels = voronoi_cells(centroids, hdr.frame_shape, lit, max_cell_radius)
-        inside, rows, _ = cell_index(labels)
-        empty = np.flatnonzero(np.bincount(rows, minlength=m) == 0)
+        labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius)
+        empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
                              f"{centroids[empty[0]].round(2).tolist()}); lower --lit-fraction")
     else:
-        px = np.floor(centroids + 0.5).astype(np.int64)
-        inside = px[:, 1] * hdr.frame_shape[1] + px[:, 0]
-        rows = np.arange(m)
-    tasks = [(c, [hdr.files[b] for b in c], hdr.frame_shape, inside, rows, m) for c in chunks(plan, chunk)]
-    raw = np.empty((m, m))
-    done = 0
-    with beam_executor(executor, workers) as ex:
-        for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
-            raw[:, done:done + block.shape[1]] = block
-            done += block.shape[1]
-    scales = np.linalg.norm(raw, axis=0)
-    zero = np.flatnonzero(~(scales > 0))
-    if zero.size:
-        raise BuildError(f"beam {plan[zero[0]]} ({hdr.files[plan[zero[0]]]}): its image is zero at every sample")
-    T = raw / scales
-    fields = {"sampling": sampling, "beams": plan, "drops": drops, "plan_m": hdr.m}
+        px = np.floor(on_grid + 0.5).astype(np.int64)
+        outside = np.flatnonzero((px < 0).any(axis=1) | (px[:, 0] >= hdr.frame_shape[1]) | (px[:, 1] >= hdr.frame_shape[0]))
+        if outside.size:
+            raise BuildError(f"beam {plan[outside[0]]}: spot at {centroids[outside[0]].round(2).tolist()} "
+                             f"is outside the {hdr.frame_shape[1]} x {hdr.frame_shape[0]} frame")
+        sampler = px[:, 1] * hdr.frame_shape[1] + px[:, 0]
     with staged_directory(out, force=force) as tmp:
-        manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan)
-        save_npy(tmp / SCALES_FILE, scales)
         if labels is not None:
             write_exr(tmp / CELLS_FILE, labels.astype(np.float32), channels=["label"],
-                      attributes={"ilt:quantity": "row of T per pixel, -1 outside every cell"})
+                      attributes={"ilt:quantity": "row of T per pixel, -1 outside every cell",
+                                  **hdr.mapping.attributes()})
+            sampler = str(tmp / CELLS_FILE)
+        source = (lambda b: cached_frame(frame_cache, b)) if frame_cache is not None else (lambda b: hdr.files[b])
+        tasks = [(c, [source(b) for b in c], hdr.frame_shape, sampler, m) for c in chunks(plan, chunk)]
+        raw = np.empty((m, m))
+        done = 0
+        with beam_executor(executor, workers) as ex:
+            for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
+                raw[:, done:done + block.shape[1]] = block
+                done += block.shape[1]
+        scales = np.linalg.norm(raw, axis=0)
+        zero = np.flatnonzero(~(scales > 0))
+        if zero.size:
+            raise BuildError(f"beam {plan[zero[0]]} ({hdr.files[plan[zero[0]]]}): its image is zero at every sample")
+        T = raw / scales
+        fields = {"sampling": sampling, "beams": plan, "drops": drops, "plan_m": hdr.m,
+                  "pixel_mapping": hdr.mapping.as_dict()}
+        manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan)
+        save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)")
         parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
                       "max_cell_radius": max_cell_radius}
@@ -152,19 +197,49 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
 
 
-def _read_sum(spots_dir: Path, shape) -> np.ndarray | None:
+def centroids_and_isf(hdr_dir: str | os.PathLike, spots_out: str | os.PathLike, isf_out: str | os.PathLike,
+                      params=None, dark=None, executor=None, workers: int | None = None, progress=None,
+                      force: bool = False, **options) -> tuple[dict, dict]:
+    """``ilt centroids`` then ``ilt build-isf`` on one HDR directory, decoding every EXR
+    once: the centroids pass keeps each decoded frame as raw ``.npy`` in a scratch
+    directory beside ``isf_out`` (m x H x W x 4 bytes of disk, removed at the end;
+    memory still holds a few frames per worker), which build-isf reads back. With a
+    ``dark`` frame (subtracted for centroids only) the frames are read twice.
+    ``options``: :func:`build_isf`'s. Returns both stages' summaries.
+    """
+    import tempfile
+
+    from ilt.spots import SpotParameters, run_centroids
+
+    parent = Path(isf_out).absolute().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=parent, prefix=".frames-") as scratch:
+        cache = scratch if dark is None else None
+        spots = run_centroids(hdr_dir, spots_out, params or SpotParameters(), dark=dark, executor=executor,
+                              workers=workers, progress=progress, force=force, frame_cache=cache)
+        isf = build_isf(hdr_dir, spots_out, isf_out, executor=executor, workers=workers, progress=progress,
+                        force=force, frame_cache=cache, **options)
+    return spots, isf
+
+
+def _read_sum(spots_dir: Path, shape, mapping) -> np.ndarray | None:
+    from ilt.frames import read_frame_with_mapping
+
     path = spots_dir / SUM_FILE
     if not path.exists():
         log.warning("%s: missing; every pixel counts as lit", path)
         return None
     try:
-        image = read_frame(path, shape)
+        image, own = read_frame_with_mapping(path, shape)
     except FrameError as exc:
         raise BuildError(str(exc)) from None
+    if own is not None and own != mapping:
+        raise BuildError(f"{path}: spots were found on frames mapped as {own.as_dict()}, these frames are "
+                         f"{mapping.as_dict()}; run 'ilt centroids' on the same HDR directory")
     return image.astype(np.float64)
 
 
-__all__ = ["build_isf", "select_beams", "lit_mask", "sample_like", "BuildError", "SAMPLINGS"]
+__all__ = ["build_isf", "centroids_and_isf", "select_beams", "lit_mask", "sample_like", "BuildError", "SAMPLINGS"]
 
 
 def sample_like(isf, frames: np.ndarray) -> np.ndarray:
@@ -181,5 +256,5 @@ def sample_like(isf, frames: np.ndarray) -> np.ndarray:
     if isf.cells is not None:
         out = np.stack([integrate(f, isf.cells, isf.m) for f in stack])
     else:
-        out = np.stack([sample_frame(f, isf.samples) for f in stack])
+        out = np.stack([sample_frame(f, isf.grid_samples) for f in stack])
     return out[0] if frames.ndim == 2 else out

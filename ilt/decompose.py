@@ -15,10 +15,18 @@ from pathlib import Path
 import numpy as np
 
 from ilt.cells import integrate, mosaic
+from ilt.frames import FrameError, PixelMapping
 from ilt.imageio import ImageError, read_exr, write_exr
 from ilt.isf import ISF
 from ilt.layout import sample_frame, splat, vector_to_image
-from ilt.manifest import fingerprint_array, fingerprint_file, save_npy, staged_directory, write_json, write_manifest
+from ilt.manifest import (
+    fingerprint_array,
+    fingerprint_file,
+    save_npy,
+    staged_directory,
+    write_json,
+    write_manifest,
+)
 from ilt.preview import bounce_panel
 from ilt.transport import (
     CancellationOperator,
@@ -99,7 +107,9 @@ def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
     """Read an EXR frame or a ``.npy`` of sample vectors, shape (m,) or (m, k).
 
     A frame is integrated over the ISF's cells when it has them (``cells.exr``, the
-    same cells T was built on), else read at the ISF's sample pixels.
+    same cells T was built on), else read at the ISF's sample pixels. It must be on the
+    ISF's frame grid: same size and, when its header says, the same pixel mapping (a
+    photo merged like the beam frames); a header without a mapping is not checked.
     """
     path = Path(path)
     if not path.exists():
@@ -135,10 +145,17 @@ def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
             raise InputError(f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, the ISF's cells "
                              f"are {isf.cells.shape[1]} x {isf.cells.shape[0]}")
         try:
+            own = PixelMapping.from_attributes(attrs, path)
+        except FrameError as exc:
+            raise InputError(str(exc)) from None
+        if own is not None and own != isf.mapping:
+            raise InputError(f"{path}: pixel mapping {own.as_dict()} differs from the ISF's "
+                             f"{isf.mapping.as_dict()}; decompose photos on the grid of the beam frames")
+        try:
             if isf.cells is not None:
                 values = integrate(image, isf.cells, isf.m)
             else:
-                values = sample_frame(image, isf.samples).astype(np.float64)
+                values = sample_frame(image, isf.grid_samples).astype(np.float64)
         except ValueError as exc:
             raise InputError(f"{path}: {exc}") from None
         channels = list(attrs.get("channels", []))
@@ -159,7 +176,8 @@ def _images(values: np.ndarray, isf: ISF, frame: bool) -> dict[str, np.ndarray]:
     else the values splatted at the sample pixels)."""
     out = {"layout": vector_to_image(values, isf.layout, isf.beams)}
     if frame:
-        out["frame"] = mosaic(values, isf.cells) if isf.cells is not None else splat(values, isf.samples, isf.frame_shape)
+        out["frame"] = (mosaic(values, isf.cells) if isf.cells is not None
+                        else splat(values, isf.grid_samples, isf.frame_shape))
     return out
 
 
@@ -177,8 +195,10 @@ def write_decomposition(
     for name, values in named.items():
         for kind, image in _images(values, isf, photo.frame).items():
             suffix = "" if kind == "layout" else ".frame"
-            write_exr(directory / f"{name}{suffix}.exr", image, channels=channels,
-                      attributes={"ilt:source": str(photo.path.name), "ilt:quantity": name})
+            attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name}
+            if kind == "frame":
+                attributes.update(isf.mapping.attributes())
+            write_exr(directory / f"{name}{suffix}.exr", image, channels=channels, attributes=attributes)
     first = (lambda v: v) if photo.values.ndim == 1 else (lambda v: v[:, 0])
     panels = {"photo": first(photo.values)}
     panels.update({f"L{n}": first(b) for n, b in enumerate(decomposition.bounces, start=1)})

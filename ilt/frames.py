@@ -5,6 +5,12 @@ their sorted names (``ilt merge`` writes ``beam-00000.exr`` ...), with an option
 ``manifest.json`` carrying the beam plan's ``layout`` [rows, cols]. With a plan, the
 files must be named ``beam-<index>.exr`` or be exactly rows x cols in number.
 
+Frames may sit on a coarser grid than the sensor: ``ilt merge`` writes half-resolution
+green images. The EXR attributes ``ilt:pixel_origin`` [x, y] and ``ilt:pixel_scale``
+(else the directory manifest's ``pixel_mapping``) say where frame pixel (i, j) lies in
+full-frame sensor pixels (DESIGN.md sec. 3); frames without them are full resolution.
+Spots and samples are stored in full-frame pixels; cells stay on the frame grid.
+
 Per-beam work (centroids, columns of T) runs through a ``concurrent.futures``
 executor in chunks of beams, with a bounded number of chunks in flight, so memory
 holds a few frames per worker however many beams there are.
@@ -36,25 +42,89 @@ class FrameError(ValueError):
 
 
 @dataclass(frozen=True)
+class PixelMapping:
+    """Frame pixel (row i, column j) lies at full-frame (x, y) = origin + scale * (j, i).
+
+    Full resolution: origin (0, 0), scale 1. A half-resolution green image of a Bayer
+    sensor (:func:`ilt.hdr.raw.to_full_frame`): origin (0.5, 0.5), scale 2.
+    """
+
+    origin: tuple[float, float] = (0.0, 0.0)
+    scale: float = 1.0
+
+    ORIGIN_ATTR = "ilt:pixel_origin"
+    SCALE_ATTR = "ilt:pixel_scale"
+
+    def to_full(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) frame-grid (x, y) -> full-frame pixels."""
+        return np.asarray(self.origin) + self.scale * np.asarray(xy, dtype=np.float64)
+
+    def to_grid(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) full-frame (x, y) -> frame-grid pixels."""
+        return (np.asarray(xy, dtype=np.float64) - np.asarray(self.origin)) / self.scale
+
+    def attributes(self) -> dict:
+        """EXR header attributes for :func:`ilt.imageio.write_exr`."""
+        return {self.ORIGIN_ATTR: [float(v) for v in self.origin], self.SCALE_ATTR: float(self.scale)}
+
+    def as_dict(self) -> dict:
+        return {"origin": [float(v) for v in self.origin], "scale": float(self.scale)}
+
+    @classmethod
+    def from_dict(cls, data: dict | None, where) -> PixelMapping | None:
+        """From ``{"origin": [x, y], "scale": s}`` (a manifest's ``pixel_mapping``); None when absent."""
+        if not data:
+            return None
+        try:
+            origin = tuple(float(v) for v in data["origin"])
+            scale = float(data["scale"])
+            assert len(origin) == 2 and scale > 0
+        except (KeyError, TypeError, ValueError, AssertionError):
+            raise FrameError(f"{where}: pixel_mapping {data!r} is not {{origin: [x, y], scale: > 0}}") from None
+        return cls(origin, scale)
+
+    @classmethod
+    def from_attributes(cls, attributes, where) -> PixelMapping | None:
+        """From EXR header attributes (a dict or an OpenImageIO ImageSpec); None when absent."""
+        get = attributes.getattribute if hasattr(attributes, "getattribute") else attributes.get
+        origin, scale = get(cls.ORIGIN_ATTR), get(cls.SCALE_ATTR)
+        if origin is None and scale is None:
+            return None
+        if isinstance(origin, str):
+            try:
+                origin = json.loads(origin)
+            except json.JSONDecodeError:
+                pass
+        return cls.from_dict({"origin": origin if origin is not None else (0.0, 0.0),
+                              "scale": scale if scale is not None else 1.0}, where)
+
+
+FULL_RESOLUTION = PixelMapping()
+
+
+@dataclass(frozen=True)
 class HDRDirectory:
     """The beam frames of one scan.
 
     files: m paths, file b is beam b of the plan; layout: (rows, cols), rows * cols == m;
-    frame_shape: (H, W) pixels, the same for every file (checked from the headers).
+    frame_shape: (H, W) pixels, the same for every file (checked from the headers);
+    mapping: where frame pixels lie in full-frame sensor pixels, the same for every file.
     """
 
     path: Path
     files: tuple[Path, ...]
     layout: tuple[int, int]
     frame_shape: tuple[int, int]
+    mapping: PixelMapping = FULL_RESOLUTION
 
     @property
     def m(self) -> int:
         return len(self.files)
 
 
-def frame_header_shape(path: Path) -> tuple[int, int]:
-    """(H, W) from an EXR header, without reading the pixels."""
+def frame_header(path: Path) -> tuple[tuple[int, int], PixelMapping | None]:
+    """(H, W) and the pixel mapping (None when the header has none) from an EXR header,
+    without reading the pixels."""
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise FrameError(f"{path}: cannot read image header: {oiio.geterror()}")
@@ -62,7 +132,7 @@ def frame_header_shape(path: Path) -> tuple[int, int]:
         spec = inp.spec()
         if inp.format_name() != "openexr":
             raise FrameError(f"{path}: is a {inp.format_name()} file, not OpenEXR")
-        return int(spec.height), int(spec.width)
+        return (int(spec.height), int(spec.width)), PixelMapping.from_attributes(spec, path)
     finally:
         inp.close()
 
@@ -76,6 +146,7 @@ def open_hdr_directory(path: str | os.PathLike) -> HDRDirectory:
     if not files:
         raise FrameError(f"{path}: no EXR frames (expected one .exr per beam)")
     layout = (1, len(files))
+    default = FULL_RESOLUTION
     if (path / MANIFEST).exists():
         try:
             plan = json.loads((path / MANIFEST).read_text())
@@ -84,14 +155,18 @@ def open_hdr_directory(path: str | os.PathLike) -> HDRDirectory:
         if plan.get("layout"):
             layout = tuple(int(n) for n in plan["layout"])
             files = _plan_files(path, files, layout[0] * layout[1])
-    shape = None
+        default = PixelMapping.from_dict(plan.get("pixel_mapping"), path / MANIFEST) or default
+    shape = mapping = None
     for f in files:
-        s = frame_header_shape(f)
+        s, own = frame_header(f)
+        own = own or default
         if shape is None:
-            shape, first = s, f
+            shape, mapping, first = s, own, f
         elif s != shape:
             raise FrameError(f"{f}: frame is {s[1]} x {s[0]} pixels, {first.name} is {shape[1]} x {shape[0]}")
-    return HDRDirectory(path=path, files=tuple(files), layout=layout, frame_shape=shape)
+        elif own != mapping:
+            raise FrameError(f"{f}: pixel mapping {own.as_dict()} differs from {first.name}'s {mapping.as_dict()}")
+    return HDRDirectory(path=path, files=tuple(files), layout=layout, frame_shape=shape, mapping=mapping)
 
 
 def _plan_files(path: Path, files: list[Path], m: int) -> list[Path]:
@@ -110,6 +185,12 @@ def _plan_files(path: Path, files: list[Path], m: int) -> list[Path]:
 
 def read_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
     """(H, W) float32 linear frame: the green channel ("G") if there is one, else the only one."""
+    return read_frame_with_mapping(path, shape)[0]
+
+
+def read_frame_with_mapping(path: str | os.PathLike,
+                            shape: tuple[int, int] | None = None) -> tuple[np.ndarray, PixelMapping | None]:
+    """:func:`read_frame` and the frame's pixel mapping from its header (None when it has none)."""
     try:
         pixels, attrs = read_exr(path)
     except ImageError as exc:
@@ -123,7 +204,28 @@ def read_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None) ->
         raise FrameError(f"{path}: channels {names}: need a 'G' channel or a single channel")
     if shape is not None and image.shape != tuple(shape):
         raise FrameError(f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, expected {shape[1]} x {shape[0]}")
-    return image
+    return image, PixelMapping.from_attributes(attrs, path)
+
+
+def cached_frame(cache: str | os.PathLike, beam: int) -> Path:
+    """Where a combined centroids + build-isf run keeps beam ``beam``'s decoded frame
+    (raw float32 ``.npy``: reading it back costs a copy from the page cache, not a
+    second EXR decode)."""
+    return Path(cache) / f"beam-{beam:05d}.npy"
+
+
+def load_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """:func:`read_frame`, or a frame kept by :func:`cached_frame` (``.npy``)."""
+    if Path(path).suffix == ".npy":
+        return np.load(path, allow_pickle=False)
+    return read_frame(path, shape)
+
+
+def _single_threaded_decoder() -> None:
+    """Worker initializer: one OpenImageIO thread per worker process, so that N workers
+    use N cores (by default every process would decode with a thread per core)."""
+    oiio.attribute("threads", 1)
+    oiio.attribute("exr_threads", 1)
 
 
 def chunks(items: Sequence, size: int) -> list[Sequence]:
@@ -144,7 +246,7 @@ def beam_executor(executor: Executor | None, workers: int | None) -> Iterator[Ex
     if workers == 1:
         yield None
         return
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with ProcessPoolExecutor(max_workers=workers, initializer=_single_threaded_decoder) as pool:
         yield pool
 
 

@@ -8,7 +8,11 @@ vector of m samples can be shown as a strip or a grid, and the camera ``frame_sh
 
 ``ilt build-isf`` adds ``scales.npy`` (the column 2-norms of the raw T) and, for cell
 sampling, ``cells.exr`` (per pixel the row of T whose cell it is in, -1 outside every
-cell); photos are then integrated over the cells instead of read at the samples. When
+cell); photos are then integrated over the cells instead of read at the samples. Cells
+live on the frame grid the ISF was built from (half resolution after ``ilt merge``); the
+manifest's ``pixel_mapping`` {origin, scale} (also in ``cells.exr``'s attributes) says
+where that grid's pixels lie in full-frame pixels, and ``frame_shape`` is the grid's.
+Photos must be on the same grid. When
 beams of the plan were dropped, ``samples.csv`` names the plan beam of each row of T
 (strictly increasing) and ``layout`` stays the plan's, so vectors still show as the
 plan's strip or grid, with gaps.
@@ -23,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ilt.frames import FULL_RESOLUTION, FrameError, PixelMapping
 from ilt.manifest import MANIFEST, read_manifest, save_npy
 
 T_FILE = "T.npy"
@@ -42,8 +47,9 @@ class ISF:
     T : (m, m) float64; samples : (m, 2) float64 pixel (x, y) or None;
     layout : (rows, cols) of the beam plan, rows * cols >= m; frame_shape : (H, W) or None;
     beams : (m,) int plan beam of each row (scanline position in ``layout``);
-    cells : (H, W) int32 row of T per pixel, -1 outside (cell sampling) or None;
-    scales : (m,) float64 column norms of the raw T, or None.
+    cells : (H, W) int32 row of T per pixel of the frame grid, -1 outside (cell sampling) or None;
+    scales : (m,) float64 column norms of the raw T, or None;
+    mapping : where frame-grid pixels lie in full-frame pixels (samples are full-frame).
     """
 
     T: np.ndarray
@@ -54,10 +60,16 @@ class ISF:
     beams: np.ndarray | None = None
     cells: np.ndarray | None = None
     scales: np.ndarray | None = None
+    mapping: PixelMapping = FULL_RESOLUTION
 
     @property
     def m(self) -> int:
         return self.T.shape[0]
+
+    @property
+    def grid_samples(self) -> np.ndarray | None:
+        """(m, 2) samples in frame-grid pixels: where to read a photo of ``frame_shape``."""
+        return None if self.samples is None else self.mapping.to_grid(self.samples)
 
 
 def write_isf(
@@ -129,9 +141,13 @@ def load_isf(path: str | os.PathLike) -> ISF:
         samples, beams = read_samples_with_beams(directory / SAMPLES_FILE)
         if samples.shape[0] != m:
             raise ISFError(f"{directory / SAMPLES_FILE}: {samples.shape[0]} samples for an m = {m} ISF")
-    layout, frame_shape = (1, m), None
+    layout, frame_shape, mapping = (1, m), None, FULL_RESOLUTION
     if (directory / MANIFEST).exists():
         manifest = read_manifest(directory)
+        try:
+            mapping = PixelMapping.from_dict(manifest.get("pixel_mapping"), directory / MANIFEST) or mapping
+        except FrameError as exc:
+            raise ISFError(str(exc)) from None
         layout = tuple(manifest.get("layout", layout))
         frame_shape = tuple(manifest["frame_shape"]) if manifest.get("frame_shape") else None
         plan_m = (int(beams[-1]) + 1) if beams is not None and m else m
@@ -139,13 +155,13 @@ def load_isf(path: str | os.PathLike) -> ISF:
             raise ISFError(f"{directory / MANIFEST}: layout {layout} does not hold m = {m} samples")
     if beams is not None and layout[0] * layout[1] == m:
         beams = None                                   # every beam kept: rows are the layout
-    cells = _read_cells(directory / CELLS_FILE, m, frame_shape) if (directory / CELLS_FILE).exists() else None
+    cells = read_cells(directory / CELLS_FILE, m, frame_shape) if (directory / CELLS_FILE).exists() else None
     scales = np.load(directory / SCALES_FILE, allow_pickle=False) if (directory / SCALES_FILE).exists() else None
     return ISF(T=T, samples=samples, layout=layout, frame_shape=frame_shape, path=t_path, beams=beams,
-               cells=cells, scales=scales)
+               cells=cells, scales=scales, mapping=mapping)
 
 
-def _read_cells(path: Path, m: int, frame_shape) -> np.ndarray:
+def read_cells(path: Path, m: int, frame_shape=None) -> np.ndarray:
     """(H, W) int32 labels from ``cells.exr``, checked against m and the frame."""
     from ilt.imageio import ImageError, read_exr
 

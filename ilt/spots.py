@@ -1,13 +1,14 @@
 """Laser spot centroids with quality flags (paper Sec. 4: "the centroid of the laser
 spot in the shortest exposure gives pixel i for beam i").
 
-Per frame (:func:`find_spot`): subtract a background (a dark frame when one was
-captured, else the frame's median), threshold relative to the peak, label connected
-components (OpenCV), keep the component holding the peak, fit a plane to the ring
+Per frame (:func:`find_spot`): subtract a dark frame when one was captured, estimate a
+robust local background map (a large median), threshold relative to the peak above it,
+label connected components (OpenCV), keep the component holding the peak, fit a plane to the ring
 around it as the local background level, and take the intensity-weighted centroid of
 the background-subtracted values in a window of about +-4 spot sigmas (sub-pixel).
 Optionally refine with a least-squares 2D Gaussian. Pixel convention of DESIGN.md:
-x right, y down, the centre of the top-left pixel at (0, 0).
+x right, y down, the centre of the top-left pixel at (0, 0); :func:`find_spot` works in
+the frame's own pixels, the stage maps them to full-frame sensor pixels.
 
 QA flags (name=figure): ``none`` (peak over noise below ``min_snr``), ``multiple``
 (flux of the second spot / the first), ``large`` (area / median area of the scan, or
@@ -91,36 +92,31 @@ def find_spot(image: np.ndarray, params: SpotParameters = SpotParameters(),
     """The laser spot in one frame.
 
     image: (H, W) float linear frame; dark: (H, W) dark frame to subtract, or None.
-    Returns a :class:`Spot` (x, y NaN when flagged ``none``).
+    Returns a :class:`Spot` in the frame's own pixels (x, y NaN when flagged ``none``).
+
+    The whole frame is touched only by a few vectorised passes (peak, background map,
+    threshold); components are labelled in a window around the peak, and over the whole
+    frame only when pixels over threshold lie outside the spot (a second spot or noise).
     """
     img = np.asarray(image)
     if dark is not None:
         img = img - dark
     height, width = img.shape
-    # robust statistics from every 4th row and column (the spot is a small part of the
-    # frame either way); the window around the spot is then handled in float64
-    rows = img[::4, ::4].astype(np.float64)
-    level = float(np.median(rows))
-    # pixel-to-pixel differences: a smooth background (interreflections) is not noise
-    step = np.diff(rows, axis=1)
-    noise = 1.4826 * float(np.median(np.abs(step - np.median(step)))) / math.sqrt(2)
+    background, noise = _local_background(img)
     iy, ix = np.unravel_index(int(np.argmax(img)), img.shape)
     top = float(img[iy, ix])
-    amplitude = top - level
+    amplitude = top - float(background[iy, ix])
     if not amplitude > max(params.min_snr * noise, 1e-30 * max(1.0, abs(top))):
         snr = amplitude / noise if noise > 0 else 0.0
         return Spot(math.nan, math.nan, 0.0, max(amplitude, 0.0), 0, {"none": round(snr, 3)})
-    mask = (img > level + params.threshold * amplitude).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    own = labels[iy, ix]
-    on = np.flatnonzero(mask)
-    fluxes = np.bincount(labels.ravel()[on], weights=img.ravel()[on] - level, minlength=count)
-    fluxes[0] = 0.0
+    above = img - background
+    mask = (above > params.threshold * amplitude).astype(np.uint8)
+    (x0, y0, w, h, area), core, others = _peak_component(mask, above, iy, ix)
     flags: dict = {}
-    others = np.delete(fluxes, [0, own])
-    if others.size and others.max() >= params.max_second * fluxes[own]:
-        flags["multiple"] = round(float(others.max() / fluxes[own]), 4)
-    x0, y0, w, h, area = (int(v) for v in stats[own])
+    if others.size:
+        own_flux = float(above[y0:y0 + h, x0:x0 + w][core].sum())
+        if others.max() >= params.max_second * own_flux:
+            flags["multiple"] = round(float(others.max() / own_flux), 4)
     sigma = math.sqrt(area / math.pi) / math.sqrt(2 * math.log(1 / params.threshold))
     pad = int(math.ceil(2.5 * sigma)) + 2
     ys, xs = slice(max(0, y0 - pad), min(height, y0 + h + pad)), slice(max(0, x0 - pad), min(width, x0 + w + pad))
@@ -137,9 +133,10 @@ def find_spot(image: np.ndarray, params: SpotParameters = SpotParameters(),
                                 float((values * gy).sum() / flux), _APERTURE * sigma)
     if params.refine:
         cx, cy = _gaussian_refine(values, gx, gy, cx, cy, sigma)
-    core = labels[ys, xs] == own
-    flags.update(_shape_flags(values, gx, gy, core, cx, cy, params))
-    plateau = int((window[core] >= top - _PLATEAU_REL * abs(top)).sum())
+    in_window = np.zeros(window.shape, dtype=bool)
+    in_window[y0 - ys.start:y0 - ys.start + h, x0 - xs.start:x0 - xs.start + w] = core
+    flags.update(_shape_flags(values, gx, gy, in_window, cx, cy, params))
+    plateau = int((window[in_window] >= top - _PLATEAU_REL * abs(top)).sum())
     if params.saturation is not None:
         clipped = int((window >= params.saturation).sum())
         if clipped:
@@ -152,6 +149,79 @@ def find_spot(image: np.ndarray, params: SpotParameters = SpotParameters(),
     if params.max_area is not None and area > params.max_area:
         flags["large"] = area
     return Spot(cx, cy, flux, float(values.max()), area, flags)
+
+
+#: the background map: medians of blocks of ``_BLOCK_SAMPLES``^2 samples on a grid of
+#: about ``_BLOCKS`` blocks along the frame's long side, then a median over
+#: ``_BLOCK_FILTER``^2 blocks, so spots up to a few blocks wide do not raise it
+_BLOCKS = 16
+_BLOCK_SAMPLES = 4
+_BLOCK_FILTER = 7
+
+
+def _local_background(img: np.ndarray) -> tuple[np.ndarray, float]:
+    """A robust local background level (H, W) float32 and the pixel noise sigma.
+
+    A large median: block medians of a subsampled frame, median-filtered over
+    ``_BLOCK_FILTER`` blocks and interpolated back; it follows smooth backgrounds
+    (interreflections, gradients of half the peak across the frame) that a single level
+    would let over the threshold as false spots. The noise comes from differences of
+    neighbouring samples, so a smooth background is not counted as noise.
+    """
+    from scipy.ndimage import median_filter
+
+    height, width = img.shape
+    step = max(1, max(height, width) // (_BLOCKS * _BLOCK_SAMPLES))
+    block = step * _BLOCK_SAMPLES
+    samples = img[step // 2::step, step // 2::step].astype(np.float32)
+    diff = np.diff(samples, axis=1) if samples.shape[1] > 1 else np.diff(samples, axis=0)
+    noise = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / math.sqrt(2)
+    by, bx = max(1, samples.shape[0] // _BLOCK_SAMPLES), max(1, samples.shape[1] // _BLOCK_SAMPLES)
+    if samples.shape[0] < _BLOCK_SAMPLES or samples.shape[1] < _BLOCK_SAMPLES:
+        return np.full(img.shape, np.median(samples), dtype=np.float32), noise
+    cells = samples[:by * _BLOCK_SAMPLES, :bx * _BLOCK_SAMPLES].reshape(by, _BLOCK_SAMPLES, bx, _BLOCK_SAMPLES)
+    coarse = np.median(cells.transpose(0, 2, 1, 3).reshape(by, bx, -1), axis=2).astype(np.float32)
+    coarse = median_filter(coarse, size=(min(_BLOCK_FILTER, by), min(_BLOCK_FILTER, bx)), mode="nearest")
+    fine = cv2.resize(coarse, (bx * block, by * block), interpolation=cv2.INTER_LINEAR)
+    fine = fine[:height, :width]
+    return cv2.copyMakeBorder(fine, 0, height - fine.shape[0], 0, width - fine.shape[1], cv2.BORDER_REPLICATE), noise
+
+
+#: half-size of the first window in which the spot's component is labelled
+_COMPONENT_WINDOW = 24
+
+
+def _peak_component(mask: np.ndarray, above: np.ndarray, iy: int, ix: int):
+    """The connected component (8-connectivity) of ``mask`` holding pixel (iy, ix).
+
+    mask: (H, W) uint8 pixels over threshold; above: (H, W) values above background.
+    Returns ((x0, y0, w, h, area) of the component, its (h, w) bool footprint, and the
+    fluxes over threshold of the other components (empty when there are none)). Labels
+    a window around the peak, grown until the component fits, and the whole frame only
+    when mask pixels lie outside the component.
+    """
+    height, width = mask.shape
+    half = _COMPONENT_WINDOW
+    while True:
+        wy0, wy1 = max(0, iy - half), min(height, iy + half + 1)
+        wx0, wx1 = max(0, ix - half), min(width, ix + half + 1)
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(mask[wy0:wy1, wx0:wx1], connectivity=8)
+        own = labels[iy - wy0, ix - wx0]
+        x0, y0, w, h, area = (int(v) for v in stats[own])
+        fits = ((x0 > 0 or wx0 == 0) and (y0 > 0 or wy0 == 0) and (x0 + w < wx1 - wx0 or wx1 == width)
+                and (y0 + h < wy1 - wy0 or wy1 == height))
+        if fits:
+            break
+        half *= 2
+    core = labels[y0:y0 + h, x0:x0 + w] == own
+    box = (x0 + wx0, y0 + wy0, w, h, area)
+    if cv2.countNonZero(mask) == area:
+        return box, core, np.empty(0)
+    count, labels, _, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    own = labels[iy, ix]
+    on = np.flatnonzero(mask)
+    fluxes = np.bincount(labels.ravel()[on], weights=above.ravel()[on], minlength=count)
+    return box, core, np.delete(fluxes, [0, own])
 
 
 def _aperture_centroid(values, gx, gy, cx, cy, radius) -> tuple[float, float]:
@@ -295,17 +365,112 @@ SUM_FILE = "sum.exr"
 OVERLAY_FILE = "overlay.png"
 
 
-def _centroid_chunk(beams, files, shape, params, dark):
-    """Worker: spots of a chunk of frames, with their pixelwise sum and max (H, W) float64."""
+def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, frame_cache=None):
+    """Worker: spots of a chunk of frames (full-frame pixels), the chunk's pixelwise sum
+    (H, W) float64 on the frame grid, and the frame grid's pixel mapping.
+
+    sources: what ``reader(source, dark)`` turns into ``(frame, mapping or None,
+    saturation)`` (EXR paths, or beam directories of a capture; ``default_mapping``
+    where the reader finds none); workers get paths, never arrays. ``frame_cache``: a
+    directory where each frame is also saved as raw ``.npy`` for a following build-isf
+    (:func:`ilt.frames.cached_frame`), so that a combined run decodes every EXR once.
+    """
+    from ilt.frames import cached_frame
+
+    spots, total, mapping = [], None, None
+    for beam, source in zip(beams, sources):
+        frame, own, saturation = reader(source, dark)
+        own = own or default_mapping
+        if total is None:
+            total, mapping = np.zeros(frame.shape), own
+        elif frame.shape != total.shape or own != mapping:
+            from ilt.frames import FrameError
+
+            raise FrameError(f"{source}: beam {beam}: frame of {frame.shape[1]} x {frame.shape[0]} pixels "
+                             f"({own.as_dict()}) differs from beam {beams[0]}'s")
+        grid_params = _grid_parameters(params, own, saturation)
+        spots.append(_to_full_frame(find_spot(frame, grid_params), own))
+        total += frame
+        if frame_cache is not None:
+            np.save(cached_frame(frame_cache, beam), frame)
+    return spots, total, mapping
+
+
+def read_exr_frame(path, dark):
+    """Reader for HDR directories: (frame - dark, its pixel mapping or None, None)."""
+    from ilt.frames import read_frame_with_mapping
+
+    frame, mapping = read_frame_with_mapping(path)
+    if dark is not None:
+        frame = frame - _cached_dark(dark, frame.shape)
+    return frame, mapping, None
+
+
+def read_shortest_exposure(beam_dir, dark=None):
+    """Reader for capture directories: the beam's shortest exposure (paper Sec. 4), its
+    half-resolution green image (:func:`ilt.hdr.raw.read_green`) less the beam's dark
+    frame when it has one, the green grid's mapping to full-frame pixels and the level
+    (DN above black) at which a sample counts as saturated. ``dark`` is unused (the
+    capture's own dark frames are)."""
+    from ilt.frames import PixelMapping
+    from ilt.hdr.bracket import read_beam
+    from ilt.hdr.exposure import parse_positive
+    from ilt.hdr.raw import read_green
+
+    bracket = read_beam(beam_dir)
+
+    def exposure(record):
+        if record.exposure_time is not None and record.f_number is not None:
+            where = bracket.path(record)
+            return parse_positive(record.exposure_time, "exposure time", where) / \
+                parse_positive(record.f_number, "f-number", where) ** 2
+        return read_green(bracket.path(record), dtype=np.float32)[1].exposure.relative_exposure()
+
+    shortest = min(bracket.frames, key=exposure)
+    green, info = read_green(bracket.path(shortest), shortest.exposure_time, shortest.f_number, dtype=np.float32)
+    if bracket.dark is not None:
+        dark_green, _ = read_green(bracket.path(bracket.dark), bracket.dark.exposure_time, bracket.dark.f_number,
+                                   dtype=np.float32)
+        if dark_green.shape != green.shape:
+            raise SpotsError(f"{bracket.path(bracket.dark)}: dark frame size differs from {shortest.file}")
+        green -= dark_green
+    return green, PixelMapping(tuple(info.origin), float(info.scale)), float(info.saturation)
+
+
+_DARK_CACHE: dict = {}
+
+
+def _cached_dark(path, shape) -> np.ndarray:
+    """The dark frame, read once per worker process."""
     from ilt.frames import read_frame
 
-    spots, total, peak = [], np.zeros(shape), np.full(shape, -np.inf)
-    for path in files:
-        frame = read_frame(path, shape)
-        spots.append(find_spot(frame, params, dark))
-        total += frame
-        np.maximum(peak, frame, out=peak)
-    return spots, total, peak
+    key = (str(path), tuple(shape))
+    if key not in _DARK_CACHE:
+        _DARK_CACHE.clear()
+        _DARK_CACHE[key] = read_frame(path, shape)
+    return _DARK_CACHE[key]
+
+
+def _grid_parameters(params: SpotParameters, mapping, saturation) -> SpotParameters:
+    """Parameters in the frame grid's pixels: the ROI mapped from full-frame pixels, and
+    the sensor's saturation level when the reader knows it and the user gave none."""
+    from dataclasses import replace
+
+    roi = params.roi
+    if roi is not None:
+        (x0, y0), (x1, y1) = mapping.to_grid(np.array(roi[:2])), mapping.to_grid(np.array(roi[2:]))
+        roi = (float(x0), float(y0), float(x1), float(y1))
+    sat = params.saturation if params.saturation is not None else saturation
+    return replace(params, roi=roi, saturation=sat) if (roi, sat) != (params.roi, params.saturation) else params
+
+
+def _to_full_frame(spot: Spot, mapping) -> Spot:
+    """A spot found on a frame grid, its centroid (and ``outside`` distance) in full-frame pixels."""
+    x, y = mapping.to_full(np.array([spot.x, spot.y]))
+    flags = dict(spot.flags)
+    if "outside" in flags:
+        flags["outside"] = round(flags["outside"] * mapping.scale, 3)
+    return Spot(float(x), float(y), spot.flux, spot.peak, spot.area, flags)
 
 
 def is_capture_directory(path: Path) -> bool:
@@ -326,52 +491,97 @@ def is_capture_directory(path: Path) -> bool:
 
 def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: SpotParameters = SpotParameters(),
                   dark: str | os.PathLike | None = None, executor=None, workers: int | None = None,
-                  chunk: int = 16, progress=None, force: bool = False) -> dict:
-    """The centroids stage: one spot per beam frame of ``hdr_dir`` into ``out`` (atomically).
+                  chunk: int = 16, progress=None, force: bool = False, frame_cache=None) -> dict:
+    """The centroids stage: one spot per beam of ``hdr_dir`` into ``out`` (atomically).
 
-    Writes ``spots.csv``, ``sum.exr`` (the sum of all beam frames, (H, W) float32: which
-    pixels the scan lights), ``overlay.png`` (all spots on the scene, paper Fig. 4) and
-    ``manifest.json`` (plan layout, frame shape, parameters, flag counts). Frames are read
-    one at a time per worker through ``executor`` (default: a process pool of ``workers``).
+    ``hdr_dir`` is an HDR directory (one EXR per beam), or a capture directory, whose
+    beams are read at their shortest exposure with their dark frames subtracted (the
+    paper's choice: the spot is least saturated there). ``dark``: a dark frame (EXR on
+    the frame grid) to subtract from HDR frames.
+
+    Writes ``spots.csv`` (centroids in full-frame sensor pixels, DESIGN.md sec. 3; area
+    and flux on the frame grid), ``sum.exr`` (the sum of all beam frames, (H, W) float32
+    on the frame grid, with its pixel mapping: which pixels the scan lights),
+    ``overlay.png`` (all spots on the scene, paper Fig. 4) and ``manifest.json`` (plan
+    layout, frame shape, pixel mapping, parameters, flag counts). Frames are read one at
+    a time per worker through ``executor`` (default: a process pool of ``workers``);
+    ``frame_cache`` (HDR directories only): see :func:`_centroid_chunk`.
     Returns the manifest's summary fields.
     """
-    from ilt.frames import beam_executor, chunks, open_hdr_directory, read_frame, run_chunks
+    from ilt.frames import (
+        beam_executor,
+        chunks,
+        open_hdr_directory,
+        read_frame,
+        run_chunks,
+    )
     from ilt.imageio import write_exr
     from ilt.manifest import staged_directory, write_manifest
 
     path = Path(hdr_dir)
     if path.is_dir() and is_capture_directory(path):
-        import importlib.util
-
-        if importlib.util.find_spec("ilt.hdr.raw") is None:
-            raise SpotsError(f"{path}: capture directories need ilt.hdr (issue 3); merge to an HDR directory first")
-        raise SpotsError(f"{path}: reading capture directories is not wired in yet; run 'ilt merge' first")
-    hdr = open_hdr_directory(path)
-    dark_frame = read_frame(dark, hdr.frame_shape) if dark else None
-    beams = list(range(hdr.m))
-    tasks = [(c, [hdr.files[b] for b in c], hdr.frame_shape, params, dark_frame) for c in chunks(beams, chunk)]
+        if dark is not None:
+            raise SpotsError(f"{path}: --dark applies to HDR directories; a capture's own dark frames are used")
+        names, sources, layout, inputs = _capture_beams(path)
+        reader, default_mapping, frame_cache = read_shortest_exposure, None, None
+    else:
+        hdr = open_hdr_directory(path)
+        if dark:
+            read_frame(dark, hdr.frame_shape)
+        names, sources, layout, inputs = [f.name for f in hdr.files], list(hdr.files), hdr.layout, \
+            _listing_fingerprint(hdr)
+        reader, default_mapping = read_exr_frame, hdr.mapping
+    beams = list(range(len(sources)))
+    tasks = [(c, [sources[b] for b in c], reader, params, str(dark) if dark else None, default_mapping,
+              frame_cache) for c in chunks(beams, chunk)]
     spots: list[Spot] = []
-    total, peak = np.zeros(hdr.frame_shape), np.full(hdr.frame_shape, -np.inf)
+    total, mapping = None, None
     with beam_executor(executor, workers) as ex:
-        for chunk_spots, chunk_total, chunk_peak in run_chunks(_centroid_chunk, tasks, ex, progress=progress):
+        for c, (chunk_spots, chunk_total, chunk_mapping) in zip(
+                (t[0] for t in tasks), run_chunks(_centroid_chunk, tasks, ex, progress=progress)):
+            if total is None:
+                total, mapping = chunk_total, chunk_mapping
+            elif chunk_total.shape != total.shape or chunk_mapping != mapping:
+                raise SpotsError(f"{sources[c[0]]}: beam {c[0]}: frame of {chunk_total.shape[1]} x "
+                                 f"{chunk_total.shape[0]} pixels differs from beam 0's")
+            else:
+                total += chunk_total
             spots.extend(chunk_spots)
-            total += chunk_total
-            np.maximum(peak, chunk_peak, out=peak)
     flag_large(spots, params.large_factor)
     counts = {name: sum(name in s.flags for s in spots) for name in FLAGS}
     for b, s in zip(beams, spots):
         if s.flags:
-            log.warning("beam %d (%s): %s", b, hdr.files[b].name, format_flags(s.flags))
-    fields = {"m": hdr.m, "layout": list(hdr.layout), "frame_shape": list(hdr.frame_shape),
-              "flag_counts": counts, "clean": sum(not s.flags for s in spots)}
+            log.warning("beam %d (%s): %s", b, names[b], format_flags(s.flags))
+    fields = {"m": len(beams), "layout": list(layout), "frame_shape": list(total.shape),
+              "pixel_mapping": mapping.as_dict(), "flag_counts": counts, "clean": sum(not s.flags for s in spots)}
     with staged_directory(out, force=force) as tmp:
         write_spots(tmp / SPOTS_FILE, beams, spots)
-        write_exr(tmp / SUM_FILE, total, attributes={"ilt:quantity": "sum of beam frames"})
-        draw_overlay(tmp / OVERLAY_FILE, peak, spots)
+        write_exr(tmp / SUM_FILE, total, attributes={"ilt:quantity": "sum of beam frames", **mapping.attributes()})
+        draw_overlay(tmp / OVERLAY_FILE, total, spots, mapping)
         parameters = {k: v for k, v in asdict(params).items()}
         parameters["dark"] = str(dark) if dark else None
-        write_manifest(tmp, "centroids", parameters, inputs=_listing_fingerprint(hdr), extra=fields)
+        write_manifest(tmp, "centroids", parameters, inputs=inputs, extra=fields)
     return {**fields, "output": str(out)}
+
+
+def _capture_beams(path: Path):
+    """Beam names, beam directories, plan layout and manifest inputs of a capture directory."""
+    import json
+
+    from ilt.hdr.bracket import list_beams
+    from ilt.manifest import MANIFEST, fingerprint_file
+
+    dirs = list_beams(path)
+    layout = (1, len(dirs))
+    inputs = {}
+    if (path / MANIFEST).exists():
+        plan = json.loads((path / MANIFEST).read_text())
+        if plan.get("layout"):
+            layout = tuple(int(n) for n in plan["layout"])
+            if layout[0] * layout[1] != len(dirs):
+                raise SpotsError(f"{path / MANIFEST}: layout {list(layout)} for {len(dirs)} beams")
+        inputs[str(path / MANIFEST)] = fingerprint_file(path / MANIFEST)
+    return [d.name for d in dirs], dirs, layout, inputs
 
 
 def _listing_fingerprint(hdr) -> dict:
@@ -392,9 +602,10 @@ def _listing_fingerprint(hdr) -> dict:
     return out
 
 
-def draw_overlay(path: Path, background: np.ndarray, spots: list[Spot]) -> Path:
-    """PNG of the scan's brightest values (log scale) with every spot marked (paper Fig. 4,
-    top left): clean spots as green circles, flagged ones as red crosses."""
+def draw_overlay(path: Path, background: np.ndarray, spots: list[Spot], mapping=None) -> Path:
+    """PNG of the sum of the scan's frames (log scale) with every spot marked (paper Fig. 4,
+    top left): clean spots as green circles, flagged ones as red crosses. ``mapping``: of
+    the frame grid (spots are in full-frame pixels)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -408,6 +619,8 @@ def draw_overlay(path: Path, background: np.ndarray, spots: list[Spot]) -> Path:
     ax.imshow(log_scale(np.where(np.isfinite(background), background, 0.0), 5.0), cmap="gray",
               interpolation="nearest")
     xy = np.array([[s.x, s.y] for s in spots])
+    if mapping is not None:
+        xy = mapping.to_grid(xy)
     bad = np.array([bool(s.flags) for s in spots])
     ok = ~bad & np.isfinite(xy[:, 0])
     ax.scatter(xy[ok, 0], xy[ok, 1], s=30, facecolors="none", edgecolors="lime", linewidths=0.8)

@@ -167,3 +167,24 @@ def test_bad_input_fails_cleanly(runs, tmp_path, case):
     message = result.output.strip().splitlines()[-1]
     assert message.startswith("ilt: error:") and named in message, result.output
     assert not out.exists() and not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+
+
+def test_pixel_mapping_from_headers_else_the_manifest_else_full_resolution(tmp_path):
+    from ilt.frames import FULL_RESOLUTION, FrameError, PixelMapping, open_hdr_directory
+    from ilt.imageio import write_exr
+    from ilt.manifest import write_json
+
+    half = PixelMapping((0.5, 0.5), 2.0)
+    for name in ("plain", "manifest", "headers", "mixed"):
+        (tmp_path / name).mkdir()
+        for b in range(2):
+            attrs = half.attributes() if name == "headers" or (name == "mixed" and b) else {}
+            write_exr(tmp_path / name / f"beam-{b:05d}.exr", np.ones((4, 6)), attributes=attrs)
+    write_json(tmp_path / "manifest" / "manifest.json", {"pixel_mapping": half.as_dict()})
+    assert open_hdr_directory(tmp_path / "plain").mapping == FULL_RESOLUTION
+    assert open_hdr_directory(tmp_path / "manifest").mapping == half
+    assert open_hdr_directory(tmp_path / "headers").mapping == half
+    with pytest.raises(FrameError, match="beam-00001.exr: pixel mapping"):
+        open_hdr_directory(tmp_path / "mixed")
+    np.testing.assert_allclose(half.to_full(half.to_grid([[16.0, 10.5]])), [[16.0, 10.5]])
+    np.testing.assert_allclose(half.to_full([[3, 2]]), [[6.5, 4.5]])

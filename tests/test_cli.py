@@ -175,8 +175,10 @@ def test_demo_quick(tmp_path):
     for r in results:
         for row in r["errors"]["exact"]:
             assert row["mean"] <= 1e-26 and row["max"] <= 1e-24
-        assert (tmp_path / "demo" / r["scene"] / "fig5.png").exists()
+        assert (tmp_path / "demo" / r["scene"] / "exact" / "fig5.png").exists()
         assert len(r["previews"]) == 3
+        assert (tmp_path / "demo" / r["scene"] / "report" / "index.html").exists()  # the simulated rig's
+    assert (tmp_path / "demo" / "report" / "index.html").exists()
 
 
 def test_bench_writes_figures_with_errors_against_truth(tmp_path):

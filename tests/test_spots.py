@@ -64,7 +64,8 @@ def test_gaussian_refinement_is_at_least_as_good():
 
 def test_background_gradient_does_not_bias_the_centroid():
     yy, xx = np.mgrid[:64, :64]
-    f = blob((64, 64), 30.3, 29.8, 1.5) + 0.005 * xx + 0.002 * yy + 1.0   # 5% of the peak across the frame
+    peak = blob((64, 64), 30.3, 29.8, 1.5).max()
+    f = blob((64, 64), 30.3, 29.8, 1.5) + peak * (0.5 * xx / 63 + 0.25 * yy / 63) + 1.0   # 3/4 of the peak across
     s = find_spot(f)
     assert abs(s.x - 30.3) < 0.02 and abs(s.y - 29.8) < 0.02 and not s.flags
 

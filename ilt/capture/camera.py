@@ -84,15 +84,14 @@ def make_sim_camera(cfg, plan_steps: np.ndarray, layout: tuple[int, int],
     ``radiance_scale``, and written through :func:`ilt.sim.sensor.write_dng`.
     """
     from ilt.sim.render import render_scene
-    from ilt.sim.sensor import SensorModel, write_dng
+    from ilt.sim.sensor import write_dng
 
     m = len(plan_steps)
     scene = render_scene(cfg.scene, beams=m, px_per_beam=cfg.px_per_beam, rows=cfg.rows)
     if scene.m != m or tuple(scene.layout) != tuple(layout):
         raise ConfigError(f"[camera] scene {cfg.scene!r} renders {scene.m} beams in layout {list(scene.layout)}, "
                           f"but the plan has {m} in {list(layout)}")
-    height, width = (s + s % 2 for s in scene.frame_shape)  # a Bayer sensor has even sides
-    sensor = SensorModel(width=max(width, 22), height=max(height, 22), model="SimSensor")
+    sensor = sim_sensor(scene)
     frames: dict[int, np.ndarray] = {}
 
     def render() -> np.ndarray:
@@ -111,6 +110,14 @@ def make_sim_camera(cfg, plan_steps: np.ndarray, layout: tuple[int, int],
         write_dng(path, radiance, exposure_time, f_number, sensor, rng)
 
     return SimCamera(render, write_raw, f"{sensor.make} {sensor.model}", cfg.seed, cfg.faults)
+
+
+def sim_sensor(scene):
+    """The simulated sensor that sees a rendered scene's whole frame (even sides for the Bayer mosaic)."""
+    from ilt.sim.sensor import SensorModel
+
+    height, width = (s + s % 2 for s in scene.frame_shape)
+    return SensorModel(width=max(width, 22), height=max(height, 22), model="SimSensor")
 
 
 # ---------------------------------------------------------------------- gphoto2

@@ -7,13 +7,13 @@ import sys
 import click
 
 from ilt.cli.centroids import _count, workers_option
-from ilt.cli.options import emit, force_option, json_option, output_option
+from ilt.cli.options import emit, force_option, json_option, stage_output_option, workspace_option
 
 
 @click.command("build-isf")
-@click.argument("hdr_dir", type=click.Path(exists=True, file_okay=False))
-@click.argument("spots_dir", type=click.Path(exists=True, file_okay=False))
-@output_option
+@click.argument("hdr_dir", required=False, type=click.Path(exists=True, file_okay=False))
+@click.argument("spots_dir", required=False, type=click.Path(exists=True, file_okay=False))
+@stage_output_option
 @click.option("--sampling", type=click.Choice(["cell", "point"]), default="cell", show_default=True,
               help="cell: integrate each frame over every spot's cell; point: read the centroid pixel (the paper).")
 @click.option("--min-separation", type=click.FloatRange(min=0), default=2.0, show_default=True,
@@ -23,10 +23,11 @@ from ilt.cli.options import emit, force_option, json_option, output_option
 @click.option("--max-cell-radius", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Cells end this many pixels from their spot (default: 2 x the median spot spacing).")
 @workers_option
+@workspace_option
 @force_option
 @json_option
 def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, max_cell_radius, workers,
-            force, as_json):
+            workspace, force, as_json):
     """Build the ISF directory OUTPUT from the beam frames in HDR_DIR and the spots in
     SPOTS_DIR (from 'ilt centroids').
 
@@ -35,6 +36,9 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
     and near-duplicate spots are dropped with a warning and recorded in the manifest.
     """
     from ilt.build_isf import build_isf
+
+    hdr_dir, spots_dir = workspace.resolve(hdr_dir, "merge"), workspace.resolve(spots_dir, "centroids")
+    output = workspace.resolve(output, "build-isf")
 
     with click.progressbar(length=_count(hdr_dir), label="build-isf", file=sys.stderr) as bar:
         summary = build_isf(hdr_dir, spots_dir, output, sampling=sampling, min_separation=min_separation,

@@ -8,18 +8,19 @@ import time
 
 import click
 
-from ilt.cli.options import emit, json_option
+from ilt.cli.options import emit, json_option, workspace_option
 
 
 @click.command("capture")
-@click.argument("config", type=click.Path(dir_okay=False))
+@click.argument("config", required=False, type=click.Path(dir_okay=False))
 @click.option("-o", "--output", type=click.Path(file_okay=False), default=None,
-              help="Capture directory (overrides the config's [output] directory).")
+              help="Capture directory (default: the config's [output] directory in the workspace).")
 @click.option("--resume", is_flag=True,
               help="Continue an interrupted capture: complete beams are skipped, the interrupted one is shot again.")
+@workspace_option
 @json_option
-def command(config, output, resume, as_json):
-    """Scan the beams of CONFIG (a rig TOML file, see docs/capture.md).
+def command(config, output, resume, workspace, as_json):
+    """Scan the beams of CONFIG (a rig TOML file, default WORKSPACE/rig.toml; docs/capture.md).
 
     Per beam: move the pan-tilt unit, settle, laser on, bracket of RAW exposures,
     laser off, dark frame. Every frame is logged in capture.jsonl; Ctrl-C stops with
@@ -29,7 +30,8 @@ def command(config, output, resume, as_json):
     from ilt.capture.config import load_config
     from ilt.capture.loop import capture
 
-    cfg = load_config(config)
+    cfg = load_config(config or workspace.config)
+    output = output or str(workspace.root / cfg.output)
     start = time.monotonic()
 
     def on_beam(result, done, total):

@@ -6,17 +6,24 @@ import sys
 
 import click
 
-from ilt.cli.options import emit, force_option, json_option, output_option
+from ilt.cli.options import (
+    emit,
+    force_option,
+    json_option,
+    stage_output_option,
+    workspace_option,
+)
 
 workers_option = click.option("--workers", type=click.IntRange(min=1), default=None,
                               help="Worker processes (default: all cores; 1: in this process).")
 
 
 @click.command("centroids")
-@click.argument("hdr_dir", type=click.Path(exists=True, file_okay=False))
-@output_option
+@click.argument("hdr_dir", required=False, type=click.Path(exists=True, file_okay=False))
+@stage_output_option
 @click.option("--dark", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Dark frame (EXR) to subtract (default: a robust local background level).")
+              help="Dark frame (EXR on the frames' grid) to subtract from HDR frames (default: a robust local "
+                   "background level; a capture directory's own dark frames are always used).")
 @click.option("--threshold", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.2,
               show_default=True, help="Spot threshold, fraction of the peak above background.")
 @click.option("--min-snr", type=click.FloatRange(min=0), default=10.0, show_default=True,
@@ -30,21 +37,26 @@ workers_option = click.option("--workers", type=click.IntRange(min=1), default=N
 @click.option("--max-area", type=click.FloatRange(min=1), default=None, help="Flag 'large' above this many pixels.")
 @click.option("--saturation", type=float, default=None,
               help="Sensor clipping level in frame units (default: detect a flat top).")
-@click.option("--roi", default=None, help="Region of interest x0,y0,x1,y1 in pixels.")
+@click.option("--roi", default=None, help="Region of interest x0,y0,x1,y1 in full-frame sensor pixels.")
 @click.option("--refine", is_flag=True, help="Refine each centroid with a 2D Gaussian fit.")
 @workers_option
+@workspace_option
 @force_option
 @json_option
 def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongation, large_factor, max_area,
-            saturation, roi, refine, workers, force, as_json):
+            saturation, roi, refine, workers, workspace, force, as_json):
     """Find the laser spot of every beam frame in HDR_DIR (one EXR per beam, sorted by
-    name, optional manifest.json with the plan's layout).
+    name, optional manifest.json with the plan's layout), or of every beam of a capture
+    directory at its shortest exposure, less its dark frame (the paper's choice).
 
-    Writes OUTPUT/spots.csv (beam,x,y,flux,peak,area,flags; pixel centres at integer
-    coordinates, (0, 0) the top-left), sum.exr (sum of the frames), overlay.png and
-    manifest.json. Flagged beams are listed on stderr; build-isf drops them.
+    Writes OUTPUT/spots.csv (beam,x,y,flux,peak,area,flags; x, y in full-frame sensor
+    pixels, centres at integer coordinates, (0, 0) the top-left, whatever the frames'
+    resolution), sum.exr (sum of the frames), overlay.png and manifest.json. Flagged
+    beams are listed on stderr; build-isf drops them.
     """
     from ilt.spots import SpotParameters, run_centroids
+
+    hdr_dir, output = workspace.resolve(hdr_dir, "merge"), workspace.resolve(output, "centroids")
 
     if roi is not None:
         try:
@@ -63,6 +75,11 @@ def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongatio
 
 
 def _count(hdr_dir) -> int:
+    """Beams to expect, for the progress bar: EXR frames, else beam directories of a capture."""
     from pathlib import Path
 
-    return sum(1 for p in Path(hdr_dir).iterdir() if p.suffix.lower() == ".exr")
+    from ilt.hdr.bracket import BEAM_GLOB
+
+    path = Path(hdr_dir)
+    return sum(1 for p in path.iterdir() if p.suffix.lower() == ".exr") or \
+        sum(1 for p in path.glob(BEAM_GLOB) if p.is_dir())

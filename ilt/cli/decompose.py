@@ -6,14 +6,21 @@ from pathlib import Path
 
 import click
 
-from ilt.cli.options import bounces_option, emit, force_option, json_option, output_option
+from ilt.cli.options import (
+    bounces_option,
+    emit,
+    force_option,
+    json_option,
+    stage_output_option,
+    workspace_option,
+)
 
 
 @click.command("decompose")
 @click.argument("inputs", nargs=-1, required=True, type=click.Path(dir_okay=False))
-@click.option("--isf", "isf_path", default="isf", show_default=True, type=click.Path(),
-              help="ISF directory (T.npy, samples.csv, manifest.json) or a T .npy file.")
-@output_option
+@click.option("--isf", "isf_path", default=None, type=click.Path(),
+              help="ISF directory (T.npy, samples.csv, manifest.json) or a T .npy file (default WORKSPACE/isf).")
+@stage_output_option
 @bounces_option
 @click.option("--tol", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="Stop once ||Ln|| / ||L|| < TOL for every input column (0: compute all N).")
@@ -21,9 +28,10 @@ from ilt.cli.options import bounces_option, emit, force_option, json_option, out
               help="Where factorised operators are kept between runs "
                    "(default $ILT_CACHE_DIR, else $XDG_CACHE_HOME/ilt).")
 @click.option("--no-cache", is_flag=True, help="Do not read or write the operator cache.")
+@workspace_option
 @force_option
 @json_option
-def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, force, as_json):
+def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, workspace, force, as_json):
     """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
 
     INPUT is an EXR photo (read at the ISF's sample pixels) or a .npy of sample
@@ -35,6 +43,7 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, force
     from ilt.decompose import decompose, default_cache_dir
     from ilt.isf import load_isf
 
+    isf_path, output = workspace.resolve(isf_path, "build-isf"), workspace.resolve(output, "decompose")
     isf = load_isf(isf_path)
     cache = None if no_cache else (Path(cache_dir) if cache_dir else default_cache_dir())
     summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache, force=force)

@@ -1,29 +1,31 @@
-"""``ilt demo``: the whole method on built-in simulated scenes."""
+"""``ilt demo``: the whole rig on built-in simulated scenes."""
 
 from __future__ import annotations
 
 import click
 
-from ilt.cli.options import emit, force_option, json_option, output_option
+from ilt.cli.options import emit, json_option, output_option
 
 
 @click.command("demo")
 @output_option
 @click.option("--quick", is_flag=True, help="Fewer beams (for CI and a first look).")
-@force_option
+@click.option("--force", is_flag=True, help="Re-run every stage (the demo otherwise skips what is up to date).")
 @json_option
 def command(output, quick, force, as_json):
-    """Run the paper's experiments on the simulated "M" and box scenes.
+    """Run the simulated rig and the paper's experiments on the "M" and box scenes.
 
-    Writes, per scene, OUTPUT/<scene>/isf (simulated ISF with truth),
-    OUTPUT/<scene>/decompose (each photo's bounce images and preview.png, like the
-    paper's Fig. 6), OUTPUT/<scene>/fig5.png (T and Cn T, like Fig. 5) and
-    fig5-errors.json, and prints the Fig. 5 error table on stderr.
+    Per scene, OUTPUT/<scene>/ is an `ilt run` workspace: the emulated pan-tilt unit
+    and the simulated camera scan the scene into DNG brackets, then merge, centroids,
+    build-isf and decompose of three photos, with OUTPUT/<scene>/report/index.html.
+    OUTPUT/<scene>/exact/ holds the exact-ISF Fig. 5 experiment (fig5.png,
+    fig5-errors.json). OUTPUT/report/index.html links them all; the Fig. 5 error
+    tables go to stderr. Running it again skips what is up to date.
     """
     from ilt.demo import error_table, run_demo
 
     results = run_demo(output, quick=quick, force=force)
     for r in results:
         click.echo(error_table(r), err=True)
-        click.echo(f"figures: {r['fig5']}  " + "  ".join(r["previews"]), err=True)
-    emit(as_json, results, [r["fig5"] for r in results] + [p for r in results for p in r["previews"]])
+    click.echo(f"ilt: demo: figures in {output}/report/index.html (and {output}/<scene>/report/)", err=True)
+    emit(as_json, results, [f"{output}/report/index.html"] + [r["report"] for r in results])

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import click
 
-from ilt.cli.options import emit, force_option, json_option
+from ilt.cli.options import emit, force_option, json_option, workspace_option
 
 
 @click.command("merge")
-@click.argument("inputs", nargs=-1, required=True, type=click.Path())
-@click.option("-o", "--output", required=True, type=click.Path(),
-              help="HDR directory to write (an .exr file with --bracket).")
+@click.argument("inputs", nargs=-1, type=click.Path())
+@click.option("-o", "--output", default=None, type=click.Path(),
+              help="HDR directory to write (default WORKSPACE/hdr; an .exr file with --bracket).")
 @click.option("--bracket", is_flag=True, help="INPUTS are the RAW files of one hand-shot bracket.")
 @click.option("--times", default=None, help="Exposure times for --bracket files without EXIF, e.g. 1/15,1/30.")
 @click.option("--dark", type=click.Path(dir_okay=False), default=None, help="Dark frame for --bracket.")
@@ -26,10 +26,11 @@ from ilt.cli.options import emit, force_option, json_option
 @click.option("--compression", type=click.Choice(["zip", "zips", "piz"]), default="zip", show_default=True)
 @click.option("-j", "--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Beams merged in parallel (processes).")
+@workspace_option
 @force_option
 @json_option
 def command(inputs, output, bracket, times, dark, response_path, gain, read_noise, margin, color,
-            compression, workers, force, as_json):
+            compression, workers, workspace, force, as_json):
     """Merge each beam's RAW bracket of CAPTURE_DIR into HDR_DIR/beam-NNNNN.exr.
 
     Dark frame subtracted, inverse response applied, noise-optimal weights
@@ -41,6 +42,10 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
     from ilt.hdr.merge import NoiseModel
     from ilt.hdr.stages import MergeOptions, load_response, merge_capture, merge_files
 
+    if bracket and (not inputs or output is None):
+        raise click.UsageError("--bracket needs the RAW FILES and -o PHOTO.exr")
+    inputs = inputs or (workspace.resolve(None, "capture"),)
+    output = workspace.resolve(output, "merge")
     response = load_response(response_path) if response_path else None
     options = MergeOptions(NoiseModel(gain, read_noise), response, margin, color, compression)
     if bracket:

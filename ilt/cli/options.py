@@ -29,3 +29,24 @@ def emit(as_json: bool, summary, paths: list[str]) -> None:
     else:
         for p in paths:
             click.echo(p)
+
+
+
+def _workspace(ctx, param, value):
+    from ilt.workspace import Workspace
+
+    return Workspace(value)
+
+
+#: every stage command: ``workspace.resolve(path_given, stage)`` is the path given, else
+#: the stage's standard directory in the workspace (ilt/workspace.py)
+workspace_option = click.option(
+    "-w", "--workspace", "workspace", type=click.Path(file_okay=False), default=".", show_default=True,
+    callback=_workspace,
+    help="Workspace directory; stage directories not given are its capture/ hdr/ spots/ isf/ decompose/.",
+)
+#: ``-o`` of a stage command: default, the stage's directory in the workspace
+stage_output_option = click.option(
+    "-o", "--output", "output", default=None, type=click.Path(file_okay=False),
+    help="Directory to write (default: the stage's directory in the workspace; must not exist unless --force).",
+)

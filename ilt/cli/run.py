@@ -1,0 +1,32 @@
+"""``ilt run``: every stage of a workspace, skipping what is up to date."""
+
+from __future__ import annotations
+
+import time
+
+import click
+
+from ilt.cli.options import emit, json_option, workspace_option
+
+
+@click.command("run")
+@click.argument("config", required=False, type=click.Path(dir_okay=False))
+@workspace_option
+@click.option("--force", is_flag=True, help="Re-run every stage (a previous scan is moved aside, never deleted).")
+@json_option
+def command(config, workspace, force, as_json):
+    """Capture, merge, centroids, build-isf and decompose the photos of CONFIG (a rig
+    TOML, default WORKSPACE/rig.toml) in the workspace, like make: a stage whose
+    parameters and inputs have not changed since it ran is skipped; a changed one
+    re-runs with every stage after it; an interrupted capture is resumed.
+
+    Prints the workspace's stage directories; `ilt status` says what is up to date.
+    """
+    from ilt.pipeline import run_pipeline, workspace_config
+
+    start = time.monotonic()
+    summaries = run_pipeline(workspace, workspace_config(workspace, config), force=force)
+    ran = [s["stage"] for s in summaries if s["ran"]]
+    click.echo(f"ilt: run: {'ran ' + ', '.join(ran) if ran else 'every stage was up to date'} "
+               f"({time.monotonic() - start:.1f} s)", err=True)
+    emit(as_json, summaries, [s["directory"] for s in summaries])

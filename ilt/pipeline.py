@@ -1,0 +1,347 @@
+"""``ilt run``: the whole pipeline in a workspace, skipping what is up to date.
+
+capture -> merge -> centroids -> build-isf -> photos -> decompose, each stage a
+directory of the workspace (:mod:`ilt.workspace`), each skipped when its run record
+matches its parameters and inputs (:mod:`ilt.stage`). The config is the rig TOML of
+``ilt capture`` (docs/capture.md) plus optional sections for the later stages, whose
+keys are the long options of the stage commands (docs/workspace.md)::
+
+    [merge]      margin = 0.05        # ilt merge --margin
+    [centroids]  threshold = 0.2      # ilt centroids --threshold
+    [build-isf]  sampling = "cell"    # ilt build-isf --sampling
+    [photos]     sim = ["flashlight"] # simulated rig: photos under these illuminations
+                 files = ["a.exr"]    # and/or EXR photos (paths relative to the config)
+    [decompose]  bounces = 8          # ilt decompose --bounces
+
+Photos on the simulated rig are *captured*: the simulated camera shoots each photo's
+bracket of DNG files under the illumination (same bracket, sensor and noise as the
+beams) and it is merged with the beams' merge options into ``photos/<kind>.exr``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+import tomllib
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import click
+import numpy as np
+
+from ilt.capture.config import ConfigError, RigConfig, parse_config
+from ilt.capture.loop import LOG_NAME, capture
+from ilt.manifest import StageError, atomic_path, staged_directory, write_manifest
+from ilt.stage import (
+    MISSING,
+    STALE,
+    StageState,
+    fingerprint_input,
+    run_stage,
+    stage_state,
+    write_record,
+)
+from ilt.workspace import STAGE_DIRS, Workspace
+
+log = logging.getLogger(__name__)
+
+#: options of a stage command that change nothing in its output (not fingerprinted)
+RUNTIME_KEYS = ("workers",)
+
+
+@dataclass
+class RunConfig:
+    """A rig config with the options of every later stage (click parameter names)."""
+
+    path: Path
+    text: str
+    rig: RigConfig
+    merge: dict = field(default_factory=dict)
+    centroids: dict = field(default_factory=dict)
+    build_isf: dict = field(default_factory=dict)
+    decompose: dict = field(default_factory=dict)
+    photo_kinds: tuple[str, ...] = ()
+    photo_files: tuple[Path, ...] = ()
+
+
+def stage_options(command: click.Command, section: dict, allowed: tuple[str, ...], where: str) -> dict:
+    """A config section as keyword options of a stage command: keys are the command's long
+    options (``read-noise`` or ``read_noise``); unspecified ones take the command's default."""
+    by_flag = {}
+    defaults = {}
+    ctx = click.Context(command)
+    for p in command.params:
+        if isinstance(p, click.Option) and p.name in allowed:
+            defaults[p.name] = p.get_default(ctx)
+            for opt in p.opts:
+                if opt.startswith("--"):
+                    by_flag[opt[2:].replace("-", "_")] = p.name
+    if not isinstance(section, dict):
+        raise ConfigError(f"{where}: must be a table")
+    out = dict(defaults)
+    for key, value in section.items():
+        name = by_flag.get(key.replace("-", "_"))
+        if name is None:
+            raise ConfigError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(by_flag))})")
+        out[name] = value
+    return out
+
+
+def load_run_config(path: str | os.PathLike) -> RunConfig:
+    """Read a rig TOML with its stage sections. ConfigError names the file and key."""
+    from ilt.cli import build_isf as build_isf_cli
+    from ilt.cli import centroids as centroids_cli
+    from ilt.cli import decompose as decompose_cli
+    from ilt.cli import merge as merge_cli
+    from ilt.sim import ILLUMINATIONS
+
+    path = Path(path)
+    text = path.read_text()
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    rig = parse_config(raw, str(path))
+    photos = raw.get("photos", {})
+    kinds = tuple(photos.get("sim", ILLUMINATIONS if rig.camera.backend == "sim" else ()))
+    unknown = set(photos) - {"sim", "files"}
+    if unknown:
+        raise ConfigError(f"{path}: [photos] unknown key {min(unknown)!r} (known: files, sim)")
+    for k in kinds:
+        if k not in ILLUMINATIONS:
+            raise ConfigError(f"{path}: [photos] sim: {k!r} unknown (known: {', '.join(ILLUMINATIONS)})")
+    if kinds and rig.camera.backend != "sim":
+        raise ConfigError(f"{path}: [photos] sim needs the simulated camera (backend = 'sim'); use files")
+    return RunConfig(
+        path, text, rig,
+        merge=stage_options(merge_cli.command, raw.get("merge", {}),
+                            ("gain", "read_noise", "margin", "color", "compression", "workers"), f"{path}: [merge]"),
+        centroids=stage_options(centroids_cli.command, raw.get("centroids", {}),
+                                ("threshold", "min_snr", "max_second", "max_elongation", "large_factor",
+                                 "max_area", "saturation", "roi", "refine", "workers"), f"{path}: [centroids]"),
+        build_isf=stage_options(build_isf_cli.command, raw.get("build-isf", {}),
+                                ("sampling", "min_separation", "lit_fraction", "max_cell_radius", "workers"),
+                                f"{path}: [build-isf]"),
+        decompose=stage_options(decompose_cli.command, raw.get("decompose", {}), ("n_bounces", "tol"),
+                                f"{path}: [decompose]"),
+        photo_kinds=kinds,
+        photo_files=tuple(path.parent / f for f in photos.get("files", ())),
+    )
+
+
+def fingerprinted(options: dict) -> dict:
+    return {k: v for k, v in options.items() if k not in RUNTIME_KEYS}
+
+
+# ---------------------------------------------------------------------- the stages
+
+
+def capture_parameters(rig: RigConfig) -> dict:
+    """What a capture depends on: the beams, the bracket, the dark frame, the camera."""
+    d = rig.as_dict()
+    return {k: d[k] for k in ("plan", "bracket", "dark", "camera")}
+
+
+def merge_options(options: dict):
+    from ilt.hdr.merge import NoiseModel
+    from ilt.hdr.stages import MergeOptions
+
+    return MergeOptions(NoiseModel(options["gain"], options["read_noise"]), None, options["margin"],
+                        options["color"], options["compression"])
+
+
+@dataclass
+class Stage:
+    """One stage of a run: its directory, parameters, input directories/files and maker."""
+
+    name: str
+    directory: Path
+    parameters: dict
+    inputs: dict[str, Path]
+    make: object = None
+
+
+def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
+    """The stages of a run in order (photos and decompose only when there are photos)."""
+    from ilt.build_isf import build_isf
+    from ilt.decompose import decompose, default_cache_dir
+    from ilt.hdr.stages import merge_capture
+    from ilt.isf import load_isf
+    from ilt.spots import SpotParameters, run_centroids
+
+    d = {name: ws.stage_dir(name) for name in STAGE_DIRS}
+    m, c, b, dec = cfg.merge, cfg.centroids, cfg.build_isf, cfg.decompose
+    spot_params = {k: v for k, v in c.items() if k != "workers"}
+    if spot_params.get("roi") is not None:
+        spot_params["roi"] = tuple(float(v) for v in spot_params["roi"])
+    isf_params = {k: v for k, v in b.items() if k != "workers"}
+
+    def make_decompose():
+        with staged_directory(d["decompose"], force=True) as tmp:
+            decompose(load_isf(d["build-isf"]), photo_paths(ws, cfg), tmp, n_bounces=dec["n_bounces"],
+                      tol=dec["tol"], cache_dir=default_cache_dir(), force=True)
+            write_manifest(tmp, "decompose", fingerprinted(dec))
+
+    stages = [
+        Stage("capture", d["capture"], capture_parameters(cfg.rig), {}),
+        Stage("merge", d["merge"], fingerprinted(m), {"capture": d["capture"]},
+              lambda: merge_capture(d["capture"], d["merge"], merge_options(m), workers=m["workers"], force=True,
+                                    parameters=fingerprinted(m))),
+        Stage("centroids", d["centroids"], fingerprinted(c), {"hdr": d["merge"]},
+              lambda: run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params),
+                                    workers=c["workers"], force=True)),
+        Stage("build-isf", d["build-isf"], fingerprinted(b), {"hdr": d["merge"], "spots": d["centroids"]},
+              lambda: build_isf(d["merge"], d["centroids"], d["build-isf"], workers=b["workers"], force=True,
+                                **isf_params)),
+    ]
+    if cfg.photo_kinds:
+        stages.append(Stage("photos", d["photos"], {"sim": list(cfg.photo_kinds), **capture_parameters(cfg.rig),
+                                                     "merge": fingerprinted(m)}, {},
+                            lambda: capture_photos(cfg.rig, cfg.photo_kinds, d["photos"], merge_options(m))))
+    if cfg.photo_kinds or cfg.photo_files:
+        inputs = {"isf": d["build-isf"]}
+        if cfg.photo_kinds:
+            inputs["photos"] = d["photos"]
+        inputs.update({f"file {p.name}": p for p in cfg.photo_files})
+        stages.append(Stage("decompose", d["decompose"], fingerprinted(dec), inputs, make_decompose))
+    return stages
+
+
+def photo_paths(ws: Workspace, cfg: RunConfig) -> list[Path]:
+    return [ws.stage_dir("photos") / f"{k}.exr" for k in cfg.photo_kinds] + list(cfg.photo_files)
+
+
+def capture_photos(rig: RigConfig, kinds, out: Path, options) -> Path:
+    """Shoot each photo's DNG bracket with the simulated camera and merge it (atomically).
+
+    ``out/raw/<kind>/`` holds the bracket (frames, dark, manifest.json as a beam's);
+    ``out/<kind>.exr`` the merged photo, in the HDR frames' pixel grid.
+    """
+    from ilt.capture.camera import SimCamera, sim_sensor
+    from ilt.capture.plan import make_plan
+    from ilt.hdr.bracket import FrameRecord, write_beam_manifest
+    from ilt.hdr.stages import merge_beam
+    from ilt.sim.render import render_scene
+    from ilt.sim.sensor import write_dng
+
+    c = rig.camera
+    scene = render_scene(c.scene, beams=make_plan(rig.plan).m, px_per_beam=c.px_per_beam, rows=c.rows)
+    sensor = sim_sensor(scene)
+    with staged_directory(out, force=True) as tmp:
+        for kind in kinds:
+            radiance = np.zeros((sensor.height, sensor.width))
+            h, w = scene.frame_shape
+            radiance[:h, :w] = scene.photo(kind)[0] * c.radiance_scale
+            lit = {"on": True}
+            camera = SimCamera(lambda radiance=radiance, lit=lit: radiance if lit["on"] else np.zeros_like(radiance),
+                               lambda p, r, t, f, rng: write_dng(p, r, t, f, sensor, rng), sensor.model,
+                               c.seed + zlib.crc32(kind.encode()))
+            bracket = tmp / "raw" / kind
+            bracket.mkdir(parents=True)
+            frames = []
+            for k, e in enumerate(rig.bracket.exposures):
+                camera.shoot(bracket / f"frame-{k:02d}.dng", e, f"photo/{kind}/{k}")
+                frames.append(FrameRecord(f"frame-{k:02d}.dng", str(e.shutter), f"{e.aperture:g}"))
+            dark = None
+            if rig.dark.frames == "longest":
+                lit["on"] = False
+                e = max(rig.bracket.exposures, key=lambda x: x.relative)
+                camera.shoot(bracket / "dark.dng", e, f"photo/{kind}/dark")
+                dark = FrameRecord("dark.dng", str(e.shutter), f"{e.aperture:g}")
+            write_beam_manifest(bracket, frames, dark, extra={"photo": kind})
+            merge_beam(bracket, tmp, options)
+        write_manifest(tmp, "photos", {"sim": list(kinds)})
+    return out
+
+
+# ---------------------------------------------------------------------- run / status
+
+
+def input_fingerprints(stage: Stage) -> dict[str, str]:
+    return {name: fingerprint_input(path) for name, path in stage.inputs.items()}
+
+
+def workspace_status(ws: Workspace, cfg: RunConfig) -> list[StageState]:
+    """Each stage's state against ``cfg``; a stage after one that is not done cannot be done."""
+    states: list[StageState] = []
+    by_dir = {}
+    for stage in plan_stages(ws, cfg):
+        blocked = [n for n, p in stage.inputs.items() if p in by_dir and not by_dir[p].done]
+        if blocked:
+            complete = (stage.directory / "manifest.json").exists()
+            s = StageState(stage.name, str(stage.directory), STALE if complete else MISSING,
+                           f"after {', '.join(by_dir[stage.inputs[n]].stage for n in blocked)}" if complete else "")
+        else:
+            try:
+                s = stage_state(stage.directory, stage.name, stage.parameters, input_fingerprints(stage))
+            except (StageError, OSError) as exc:
+                s = StageState(stage.name, str(stage.directory), MISSING, str(exc))
+        states.append(s)
+        by_dir[stage.directory] = s
+    return states
+
+
+def install_config(ws: Workspace, cfg: RunConfig) -> None:
+    """Keep the run's config as WORKSPACE/rig.toml (what `ilt status` compares against)."""
+    ws.root.mkdir(parents=True, exist_ok=True)
+    if ws.config.exists() and ws.config.resolve() == cfg.path.resolve():
+        return
+    if ws.config.exists() and ws.config.read_text() == cfg.text:
+        return
+    with atomic_path(ws.config) as tmp:
+        tmp.write_text(cfg.text)
+
+
+def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool) -> bool:
+    """The capture stage: resumed when interrupted; a scan that differs from the config
+    is moved aside (never deleted) only with ``force``."""
+    state = stage_state(stage.directory, "capture", stage.parameters)
+    if state.done and not force:
+        log.info("capture: up to date (%s)", stage.directory)
+        return False
+    if state.state == STALE or (state.done and force):
+        if not force:
+            raise StageError(f"{stage.directory}: {state.reason}; the scan differs from the config "
+                             "(use --force to move it aside and scan again)")
+        k = 1
+        while (aside := stage.directory.with_name(f"{stage.directory.name}.previous-{k}")).exists():
+            k += 1
+        os.replace(stage.directory, aside)
+        log.warning("capture: the previous scan is kept in %s", aside)
+    resume = (stage.directory / LOG_NAME).exists()
+    log.info("capture: %s (%s)", "resuming" if resume else "scanning", state.reason or state.state)
+
+    def on_beam(result, done, total):
+        log.debug("capture: beam %d (%d/%d) %.1f s", result.beam, done, total, result.seconds)
+
+    capture(cfg.rig, stage.directory, resume=resume, on_beam=on_beam)
+    write_record(stage.directory, "capture", stage.parameters, {})
+    return True
+
+
+def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False) -> list[dict]:
+    """Run every stage that is not up to date, in order. Returns one summary per stage."""
+    install_config(ws, cfg)
+    summaries = []
+    for stage in plan_stages(ws, cfg):
+        t0 = time.monotonic()
+        if stage.name == "capture":
+            ran = run_capture(ws, stage, cfg, force)
+        else:
+            ran, _ = run_stage(stage.directory, stage.name, stage.parameters, input_fingerprints(stage),
+                               stage.make, force=force)
+        summaries.append({"stage": stage.name, "directory": str(stage.directory),
+                          "ran": ran, "seconds": round(time.monotonic() - t0, 3)})
+    return summaries
+
+
+def workspace_config(ws: Workspace, config: str | os.PathLike | None) -> RunConfig:
+    """The config given, else the workspace's rig.toml."""
+    path = Path(config) if config else ws.config
+    if not path.exists():
+        raise StageError(f"{path}: no config (give a rig TOML, e.g. configs/sim.toml)"
+                         if config else f"{ws.root}: no {ws.config.name}; give a rig TOML to 'ilt run'")
+    return load_run_config(path)
+

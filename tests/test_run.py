@@ -1,0 +1,128 @@
+"""`ilt run` / `ilt status` on a small simulated rig: skipping, staleness, workspace."""
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from ilt.cli import cli
+from ilt.pipeline import load_run_config, workspace_status
+from ilt.workspace import Workspace
+
+SMALL_RIG = """\
+[ptu]
+port = "emulator"
+settle = 0.0
+emulator_speed = 20000
+
+[camera]
+backend = "sim"
+model = "ilt SimSensor"
+scene = "m"
+px_per_beam = 8.0
+rows = 8
+radiance_scale = 1.0e8
+
+[bracket]
+shutter = ["1/15", "1/125", "1/1000", "1/8000"]
+aperture = 1.2
+extra = [{ shutter = "1/8000", aperture = 16 }]
+
+[plan]
+kind = "line"
+pan = [-20.0, 20.0]
+tilt = 0.0
+count = 8
+
+[centroids]
+workers = 1
+
+[build-isf]
+workers = 1
+
+[photos]
+sim = ["flashlight"]
+
+[decompose]
+bounces = 4
+"""
+
+
+def run(*args):
+    result = CliRunner().invoke(cli, list(args))
+    assert result.exit_code == 0, result.output
+    return result
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ws")
+    (root / "small.toml").write_text(SMALL_RIG)
+    result = run("run", str(root / "small.toml"), "-w", str(root / "ws"), "--json")
+    summary = json.loads(result.stdout)
+    assert [s["stage"] for s in summary] == ["capture", "merge", "centroids", "build-isf", "photos", "decompose"]
+    assert all(s["ran"] for s in summary)
+    return root / "ws"
+
+
+def stages_run(result) -> list[str]:
+    return [s["stage"] for s in json.loads(result.stdout) if s["ran"]]
+
+
+def test_first_run_writes_every_stage(workspace):
+    for sub in ("capture", "hdr", "spots", "isf", "photos", "decompose"):
+        assert (workspace / sub / "manifest.json").exists()
+    assert (workspace / "decompose" / "flashlight" / "bounce-1.exr").exists()
+    assert (workspace / "rig.toml").read_text() == SMALL_RIG
+
+
+def test_second_run_skips_every_stage(workspace):
+    result = run("run", "-w", str(workspace), "--json")
+    assert stages_run(result) == []
+    assert "every stage was up to date" in result.stderr
+    status = run("status", "-w", str(workspace)).stdout
+    assert status.count("done") == 6, status
+
+
+def test_changed_merge_parameter_reruns_merge_and_after(workspace, tmp_path):
+    changed = tmp_path / "changed.toml"
+    changed.write_text(SMALL_RIG + "\n[merge]\nmargin = 0.05\n")
+    status = json.loads(run("status", str(changed), "-w", str(workspace), "--json").stdout)
+    states = {s["stage"]: s for s in status}
+    assert states["capture"]["state"] == "done" and states["photos"]["state"] == "stale"
+    assert states["merge"]["state"] == "stale" and "margin" in states["merge"]["reason"]
+    assert states["centroids"]["reason"] == "after merge"
+    capture_log = (workspace / "capture" / "capture.jsonl").read_text()
+    result = run("run", str(changed), "-w", str(workspace), "--json")
+    assert stages_run(result) == ["merge", "centroids", "build-isf", "photos", "decompose"]
+    assert (workspace / "capture" / "capture.jsonl").read_text() == capture_log
+    assert stages_run(run("run", "-w", str(workspace), "--json")) == []
+    (workspace / "rig.toml").write_text(SMALL_RIG)  # back, for the tests after this one
+    assert stages_run(run("run", "-w", str(workspace), "--json"))[0] == "merge"
+
+
+def test_status_reports_missing_and_incomplete(tmp_path):
+    (tmp_path / "rig.toml").write_text(SMALL_RIG)
+    (tmp_path / "capture" / "beam-00000").mkdir(parents=True)
+    states = workspace_status(Workspace(tmp_path), load_run_config(tmp_path / "rig.toml"))
+    assert [s.state for s in states] == ["missing"] * 6
+    assert "incomplete" in states[0].reason
+
+
+def test_changed_scan_is_not_overwritten_without_force(workspace, tmp_path):
+    other = tmp_path / "other.toml"
+    other.write_text(SMALL_RIG.replace("1/125", "1/250"))
+    result = CliRunner().invoke(cli, ["run", str(other), "-w", str(workspace)])
+    assert result.exit_code == 1 and "--force" in result.output
+
+
+def test_unknown_stage_option_names_the_key(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SMALL_RIG + "\n[merge]\nmargins = 0.05\n")
+    result = CliRunner().invoke(cli, ["status", str(bad), "-w", str(tmp_path)])
+    assert result.exit_code == 1 and "margins" in result.output
+
+
+def test_no_config_is_a_one_line_error(tmp_path):
+    result = CliRunner().invoke(cli, ["status", "-w", str(tmp_path)])
+    assert result.exit_code == 1 and "rig.toml" in result.output

@@ -28,6 +28,8 @@ from ilt.manifest import (
     write_manifest,
 )
 from ilt.preview import bounce_panel
+from ilt.regularise import regularise_isf
+from ilt.solvers import build_operator, choose_solver, estimate_noise
 from ilt.transport import (
     CancellationOperator,
     TransportError,
@@ -54,13 +56,48 @@ def default_cache_dir() -> Path:
     return Path(base) / "ilt"
 
 
-def load_operator(T: np.ndarray, cache_dir: Path | None) -> tuple[CancellationOperator, dict]:
-    """``C1`` for ``T`` and its diagnostics, from the cache when T was seen before.
+def load_operator(
+    T: np.ndarray,
+    cache_dir: Path | None,
+    solver: str = "auto",
+    noise: float | None = None,
+    layout: tuple[int, int] | None = None,
+    regularise: bool = False,
+):
+    """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
+    the same T (and regularisation) was seen before.
 
-    Returns the operator and the diagnostics dict (with ``"cached": bool`` and
-    ``"fingerprint"``).
+    ``solver``: auto, dense, mixed or blocks (:mod:`ilt.solvers`). ``noise``: sigma of
+    T relative to its unit columns; None measures it from T's negative entries when it
+    can. ``regularise``: denoise T first (:mod:`ilt.regularise`; needs the noise and the
+    plan ``layout``). Returns the operator and a JSON-ready dict of diagnostics with
+    ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint``.
     """
     key = fingerprint_array(np.asarray(T)).split(":", 1)[1]
+    measured = estimate_noise(T) if noise is None else noise
+    notes = {
+        "noise": measured,
+        "noise_source": "given" if noise is not None else
+        ("measured from negative entries of T" if measured is not None else "unknown (give --noise)"),
+    }
+    if regularise:
+        if measured is None:
+            raise TransportError("regularising needs the noise level of T and T has no negative entries "
+                                 "to measure it from: give --noise")
+        if layout is None or layout[0] * layout[1] != T.shape[0]:
+            raise TransportError(f"regularising needs the plan's full grid layout; this ISF has {layout} "
+                                 f"for m = {T.shape[0]} (beams were dropped?)")
+        T, reg = regularise_isf(T, layout, measured)
+        notes.update(regularisation=reg.describe(), regularisation_width=reg.width)
+        key += f"-reg{reg.width:g}-{measured:.3e}"
+    name, reason = choose_solver(T, measured) if solver == "auto" else (solver, f"asked for {solver}")
+    notes.update(fingerprint="sha256:" + key.split("-")[0])
+    if name != "dense":
+        log.info("building the %s operator (m = %d): %s", name, T.shape[0], reason)
+        op, why = build_operator(T, name, measured)
+        return op, {**operator_diagnostics(T, op), **notes, "solver": op.solver, "solver_reason": why,
+                    "rcond": op.rcond, "cached": False}
+    notes.update(solver="dense", solver_reason=reason)
     entry = cache_dir / "operators" / key if cache_dir is not None else None
     if entry is not None and (entry / "diagnostics.json").exists():
         try:
@@ -71,12 +108,12 @@ def load_operator(T: np.ndarray, cache_dir: Path | None) -> tuple[CancellationOp
                 column_norms=arrays["column_norms"], rcond=diagnostics["rcond"],
             )
             log.info("operators for T %s… read from the cache %s", key[:12], entry)
-            return op, {**diagnostics, "cached": True}
+            return op, {**diagnostics, **notes, "cached": True}
         except (OSError, ValueError, KeyError) as exc:
             log.warning("ignoring unreadable operator cache %s (%s); rebuilding", entry, exc)
     log.info("factorising T (m = %d)", T.shape[0])
     op = cancellation_operator(T)
-    diagnostics = {**operator_diagnostics(T, op), "rcond": op.rcond, "fingerprint": "sha256:" + key}
+    diagnostics = {**operator_diagnostics(T, op), "rcond": op.rcond}
     if entry is not None:
         try:
             with staged_directory(entry, force=True) as tmp:
@@ -85,7 +122,7 @@ def load_operator(T: np.ndarray, cache_dir: Path | None) -> tuple[CancellationOp
                 write_json(tmp / "diagnostics.json", diagnostics)
         except OSError as exc:
             log.warning("could not cache the operators in %s (%s)", entry, exc)
-    return op, {**diagnostics, "cached": False}
+    return op, {**diagnostics, **notes, "cached": False}
 
 
 @dataclass(frozen=True)
@@ -215,8 +252,14 @@ def decompose(
     tol: float = 0.0,
     cache_dir: Path | None = None,
     force: bool = False,
+    solver: str = "auto",
+    noise: float | None = None,
+    regularise: bool = False,
 ) -> list[dict]:
     """Decompose every input into ``out/<stem>/``; returns one summary per input.
+
+    ``solver``, ``noise`` and ``regularise`` choose how ``C1`` is built (see
+    :func:`load_operator`).
 
     All inputs are read and checked before anything is written, so a bad input leaves
     no output behind.
@@ -230,7 +273,7 @@ def decompose(
         if (out / stem).exists() and not force:
             raise InputError(f"{out / stem} exists; use --force to replace it")
     try:
-        op, op_diag = load_operator(isf.T, cache_dir)
+        op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise)
     except TransportError as exc:
         raise TransportError(f"{isf.path}: {exc}") from None
     for w in op_diag["warnings"]:

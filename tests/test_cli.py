@@ -198,3 +198,36 @@ def test_bench_writes_figures_with_errors_against_truth(tmp_path):
             assert r["ratio_to_scipy"] == 1.0
     assert json.loads((tmp_path / "b" / "bench.json").read_text())["rows"] == rows
     assert (tmp_path / "b" / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_decompose_solver_noise_and_regularisation(isf_dir, tmp_path):
+    photo = isf_dir / "photos" / "room.npy"
+    truth = np.load(isf_dir / "truth" / "photos" / "room-bounces.npy")
+    result = run("decompose", "--isf", isf_dir, photo, "-o", tmp_path / "a", "--no-cache", "--json")
+    ops = json.loads(result.stdout)[0]["operators"]
+    assert ops["solver"] == "dense" and "one connected group" in ops["solver_reason"]
+    assert ops["noise"] is None and "give --noise" in ops["noise_source"]
+    result = run("decompose", "--isf", isf_dir, photo, "-o", tmp_path / "b", "--no-cache", "--solver", "mixed",
+                 "--json")
+    assert json.loads(result.stdout)[0]["operators"]["solver"] == "mixed"
+    assert relative_errors(np.load(tmp_path / "b" / "room" / "bounces.npy"), truth).max() < 1e-5
+    # a clean T has no negative entries: regularising needs the noise level
+    result = run("decompose", "--isf", isf_dir, photo, "-o", tmp_path / "c", "--no-cache", "--regularise", ok=False)
+    assert result.exit_code == 1 and "give --noise" in result.output
+    assert not (tmp_path / "c").exists()
+    # a noisy T: the noise is measured, the filter width reported, and the bounces are closer to the truth
+    noisy = tmp_path / "noisy"
+    noisy.mkdir()
+    for name in ("samples.csv", "manifest.json"):
+        (noisy / name).write_bytes((isf_dir / name).read_bytes())
+    T = np.load(isf_dir / "T.npy")
+    np.save(noisy / "T.npy", T + 1e-2 * np.random.default_rng(0).normal(size=T.shape))
+    errors = {}
+    for flag in ([], ["--regularise"]):
+        out = tmp_path / ("reg" if flag else "plain")
+        result = run("decompose", "--isf", noisy, photo, "-o", out, "--no-cache", "--bounces", 4, *flag, "--json")
+        ops = json.loads(result.stdout)[0]["operators"]
+        assert ops["noise"] == pytest.approx(1e-2, rel=0.3) and "measured" in ops["noise_source"]
+        errors[bool(flag)] = relative_errors(np.load(out / "room" / "bounces.npy"), truth[:4]).max()
+    assert ops["regularisation_width"] > 0
+    assert errors[True] < errors[False]

@@ -28,10 +28,20 @@ from ilt.cli.options import (
               help="Where factorised operators are kept between runs "
                    "(default $ILT_CACHE_DIR, else $XDG_CACHE_HOME/ilt).")
 @click.option("--no-cache", is_flag=True, help="Do not read or write the operator cache.")
+@click.option("--solver", type=click.Choice(["auto", "dense", "mixed", "blocks"]), default="auto", show_default=True,
+              help="How C1 is built: dense LU (reference), mixed float32/float64, blocks for independent "
+                   "groups of points; auto picks by structure, size and noise and says why.")
+@click.option("--noise", type=click.FloatRange(min=0), default=None,
+              help="Noise sigma of T relative to its unit columns (default: measured from T's negative "
+                   "entries when it has some).")
+@click.option("--regularise", is_flag=True,
+              help="Denoise T before inverting it: smooth its indirect part along pixels and beams, as much "
+                   "as the noise allows (discrepancy principle); needs the noise level and a full grid plan.")
 @workspace_option
 @force_option
 @json_option
-def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, workspace, force, as_json):
+def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solver, noise, regularise, workspace,
+            force, as_json):
     """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
 
     INPUT is an EXR photo (read at the ISF's sample pixels) or a .npy of sample
@@ -46,5 +56,6 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, works
     isf_path, output = workspace.resolve(isf_path, "build-isf"), workspace.resolve(output, "decompose")
     isf = load_isf(isf_path)
     cache = None if no_cache else (Path(cache_dir) if cache_dir else default_cache_dir())
-    summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache, force=force)
+    summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache, force=force,
+                          solver=solver, noise=noise, regularise=regularise)
     emit(as_json, summaries, [s["output"] for s in summaries])

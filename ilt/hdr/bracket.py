@@ -16,6 +16,7 @@ Either fact may be missing (null); it is then read from the frame's EXIF. See do
 from __future__ import annotations
 
 import json
+import logging
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -23,6 +24,8 @@ from pathlib import Path
 from ilt.manifest import MANIFEST, write_json
 
 BEAM_GLOB = "beam-[0-9]*"
+
+log = logging.getLogger(__name__)
 
 
 class CaptureError(ValueError):
@@ -109,6 +112,36 @@ def list_beams(capture_dir: str | os.PathLike) -> list[Path]:
     if not dirs:
         raise CaptureError(f"{capture_dir}: no beam-NNNNN directories (see docs/hdr.md)")
     return dirs
+
+
+def logged_fingerprints(capture_dir: str | os.PathLike) -> dict[str, dict[str, str]]:
+    """The fingerprints ``ilt capture`` logged: beam directory name -> {frame file name:
+    "sha256:<hex>"}, from ``capture.jsonl`` (docs/capture.md); empty without a log.
+
+    A file logged twice keeps its latest record; a beam that ``--resume`` set aside
+    forgets the records before it (those files moved to ``.incomplete/``). A damaged log
+    gives nothing (with a warning): the frames are then hashed as they are read.
+    """
+    from ilt.capture.config import ConfigError
+    from ilt.capture.loop import LOG_NAME, beam_name, read_log
+
+    path = Path(capture_dir) / LOG_NAME
+    if not path.is_file():
+        return {}
+    try:
+        records = read_log(path)
+    except ConfigError as exc:
+        log.warning("%s; every frame will be hashed", exc)
+        return {}
+    beams: dict[str, dict[str, str]] = {}
+    for r in records:
+        if r.get("event") == "set_aside":
+            beams.pop(beam_name(r["beam"]), None)
+        elif r.get("event") == "frame" and isinstance(r.get("sha256"), str):
+            beam, _, name = str(r.get("file", "")).partition("/")
+            if name and "/" not in name:
+                beams.setdefault(beam, {})[name] = r["sha256"]
+    return beams
 
 
 def _record(item: dict) -> FrameRecord:

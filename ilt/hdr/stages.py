@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.hdr.bracket import Bracket, FrameRecord, list_beams, read_beam
+from ilt.hdr.bracket import Bracket, FrameRecord, list_beams, logged_fingerprints, read_beam
 from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
 from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
 from ilt.hdr.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
@@ -79,13 +79,16 @@ class Frame:
 
 
 def read_frame(path: Path, record: FrameRecord | None = None, hand_time=None, *,
-               margin: float = SATURATION_MARGIN, color: bool = False) -> Frame:
-    """Read a RAW frame once: its bytes are hashed and decoded from memory."""
+               margin: float = SATURATION_MARGIN, color: bool = False,
+               fingerprint: str | None = None) -> Frame:
+    """Read a RAW frame once and decode it from memory. Its bytes are hashed unless
+    ``fingerprint`` ("sha256:<hex>", as the capture logged it) is given."""
     try:
         data = path.read_bytes()
     except FileNotFoundError:
         raise RawError(f"{path}: no such file") from None
-    fingerprint = "sha256:" + hashlib.sha256(data).hexdigest()
+    if fingerprint is None:
+        fingerprint = "sha256:" + hashlib.sha256(data).hexdigest()
     green, info = read_green(path, record.exposure_time if record else None,
                              record.f_number if record else None, hand_time, margin, data=data,
                              dtype=np.float32)
@@ -178,17 +181,24 @@ def merge_frames(frames: list[Frame], dark: Frame | None, options: MergeOptions)
     return radiance, count, saturated, exposures, attributes
 
 
-def merge_beam(beam_dir: str | os.PathLike, out_dir: str | os.PathLike, options: MergeOptions) -> dict:
+def merge_beam(beam_dir: str | os.PathLike, out_dir: str | os.PathLike, options: MergeOptions,
+               fingerprints: dict[str, str] | None = None) -> dict:
     """Merge one beam directory into ``out_dir/<beam>.exr``, ``.valid.png``, ``.saturated.png``.
 
-    Memory: one bracket. Returns a summary (beam, files, inputs with fingerprints).
+    ``fingerprints``: frame file name -> "sha256:<hex>" the capture recorded; files not
+    in it are hashed as they are read. Memory: one bracket. Returns a summary (beam,
+    files, inputs with fingerprints, how many were hashed here).
     Raises RawError/MergeError/ExposureError naming the file at fault; writes nothing then.
     """
     bracket = read_beam(beam_dir)
-    frames = [read_frame(bracket.path(r), r, margin=options.margin, color=options.color)
-              for r in bracket.frames]
-    dark = (read_frame(bracket.path(bracket.dark), bracket.dark, margin=options.margin,
-                       color=options.color) if bracket.dark else None)
+    known = fingerprints or {}
+
+    def read(record: FrameRecord) -> Frame:
+        return read_frame(bracket.path(record), record, margin=options.margin, color=options.color,
+                          fingerprint=known.get(record.file))
+
+    frames = [read(r) for r in bracket.frames]
+    dark = read(bracket.dark) if bracket.dark else None
     radiance, count, saturated, exposures, attributes = merge_frames(frames, dark, options)
     name = Path(beam_dir).name
     out_dir = Path(out_dir)
@@ -200,6 +210,7 @@ def merge_beam(beam_dir: str | os.PathLike, out_dir: str | os.PathLike, options:
     inputs = {f"{name}/{fr.info.path.name}": fr.fingerprint for fr in frames + ([dark] if dark else [])}
     return {"beam": name, "frames": len(frames), "saturated_pixels": int(saturated.sum()),
             "min_valid": int(count.min()), "inputs": inputs,
+            "hashed": sum(Path(f).name not in known for f in inputs),
             "exposures": [fr.info.exposure.as_dict() for fr in frames]}
 
 
@@ -219,13 +230,19 @@ def merge_capture(
     else a process pool of ``workers`` (1: in this process). The directory is staged and
     renamed into place only when every beam succeeded: on any error an existing
     ``output`` is untouched and nothing half-written remains.
+
+    Input fingerprints come from the capture's log (``capture.jsonl``) where it recorded
+    them, so no frame is hashed twice; other files are hashed as they are read.
     """
     beams = list_beams(capture_dir)
+    logged = logged_fingerprints(capture_dir)
     with staged_directory(output, force=force) as tmp:
-        summaries = _run_beams(beams, tmp, options, executor, workers)
+        summaries = _run_beams(beams, tmp, options, executor, workers, logged)
         inputs = {k: v for s in summaries for k, v in s.pop("inputs").items()}
+        hashed = sum(s.pop("hashed") for s in summaries)
         first = summaries[0]
         write_manifest(tmp, "merge", parameters or {}, inputs, extra={
+            "fingerprints": {"from_capture_log": len(inputs) - hashed, "hashed": hashed},
             "beams": [s["beam"] for s in summaries],
             "channels": ["R", "G", "B"] if options.color else ["Y"],
             "pixel_mapping": {"origin": [0.5, 0.5], "scale": 2.0,
@@ -237,13 +254,13 @@ def merge_capture(
                           "saturated_pixels": sum(s["saturated_pixels"] for s in summaries)}
 
 
-def _run_beams(beams, out_dir, options, executor, workers) -> list[dict]:
+def _run_beams(beams, out_dir, options, executor, workers, logged) -> list[dict]:
     if executor is None and workers <= 1:
-        return [merge_beam(b, out_dir, options) for b in beams]
+        return [merge_beam(b, out_dir, options, logged.get(b.name)) for b in beams]
     own = executor is None
     pool = process_pool(workers) if own else executor
     try:
-        futures = [pool.submit(merge_beam, b, out_dir, options) for b in beams]
+        futures = [pool.submit(merge_beam, b, out_dir, options, logged.get(b.name)) for b in beams]
         try:
             return [f.result() for f in futures]
         except BaseException:
@@ -348,8 +365,9 @@ def collect_calibration_input(inputs: list[str | os.PathLike], times: list[Fract
         raw_kind = kinds.pop() if raw_kind is None else raw_kind
         shapes = {x[0].shape for x in loaded}
         if len(shapes) > 1:
-            odd = next(p for (p, _), x in zip(bracket, loaded) if x[0].shape != loaded[0][0].shape)
-            raise CalibrationError(f"{odd}: size {x[0].shape} differs from {bracket[0][0].name}")
+            odd, shape = next((p, x[0].shape) for (p, _), x in zip(bracket, loaded)
+                              if x[0].shape != loaded[0][0].shape)
+            raise CalibrationError(f"{odd}: size {shape} differs from {bracket[0][0].name}")
         order = sorted(range(len(loaded)), key=lambda k: loaded[k][1].relative_exposure())
         facts = [loaded[k][1] for k in order]
         if facts_ref is not None and [f.relative_exposure() for f in facts] != \

@@ -1,0 +1,128 @@
+"""SIGKILL `ilt run` at 10 moments of a simulated scan (issue 7): no stage that `ilt status`
+calls done is incomplete, no completed beam is lost, and the final re-run gives results
+identical, bit for bit, to an uninterrupted run.
+
+Each kill is triggered by a file of the run appearing (a frame, a beam's manifest, a
+stage's temporary directory...) plus a seeded random delay, so the moments cover every
+stage whatever the speed of the machine; the runs go on in one workspace, each resuming
+what the last one left.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from test_run import SMALL_RIG
+
+from ilt.capture.loop import verify_log
+from ilt.cli import cli
+from ilt.frames import read_frame
+from ilt.manifest import fingerprint_file, read_manifest
+
+#: what triggers each kill: a path (glob, relative to the workspace) that appears during the run
+TRIGGERS = (
+    "capture/capture.jsonl",
+    "capture/beam-00001/frame-02.dng",
+    "capture/beam-00003/manifest.json",
+    "capture/beam-00006/dark.dng",
+    "capture/manifest.json",
+    ".hdr.tmp-*/beam-00004.exr",
+    ".spots.tmp-*",
+    ".isf.tmp-*",
+    ".photos.tmp-*",
+    "decompose/manifest.json",
+)
+#: results compared with the uninterrupted run's, byte for byte
+RESULTS = ("isf/T.npy", "isf/scales.npy", "isf/samples.csv", "spots/spots.csv",
+           "decompose/flashlight/bounces.npy", "decompose/flashlight/residual.npy")
+
+
+def _ilt(*args, env):
+    return subprocess.Popen([sys.executable, "-m", "ilt", *map(str, args)], env=env, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _new_paths(root: Path, pattern: str, before: set) -> bool:
+    return any(p not in before for p in root.glob(pattern))
+
+
+def _run_and_kill(ws: Path, config: Path, pattern: str, delay: float, env) -> bool:
+    """Start `ilt run`, SIGKILL its process group ``delay`` s after a new ``pattern`` path
+    appears in ``ws``. Returns True when it was killed (False: it finished first)."""
+    before = set(ws.glob(pattern))
+    proc = _ilt("run", config, "-w", ws, env=env)
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and not _new_paths(ws, pattern, before):
+        assert time.monotonic() < deadline, f"{pattern} never appeared"
+        time.sleep(0.002)
+    time.sleep(delay)
+    killed = proc.poll() is None
+    if killed:
+        os.killpg(proc.pid, signal.SIGKILL)
+    _, err = proc.communicate()
+    assert killed or proc.returncode == 0, err.decode()
+    return killed
+
+
+def _complete_beams(capture: Path) -> dict[str, dict[str, str]]:
+    """Every complete beam (its manifest exists) with the fingerprints of its files."""
+    return {b.name: {f.name: fingerprint_file(f) for f in b.iterdir()}
+            for b in capture.glob("beam-*") if (b / "manifest.json").exists()}
+
+
+def _check_done_stages_are_complete(ws: Path):
+    result = CliRunner().invoke(cli, ["status", "-w", str(ws), "--json"])
+    assert result.exit_code == 0, result.output
+    for state in json.loads(result.stdout):
+        if state["state"] != "done":
+            continue
+        directory = Path(state["directory"])
+        for name, digest in read_manifest(directory)["outputs"].items():
+            assert (directory / name).is_file(), f"{state['stage']} done but {name} missing"
+            assert fingerprint_file(directory / name) == digest, f"{state['stage']} done but {name} changed"
+        if state["stage"] == "capture":
+            beams = read_manifest(directory)["beams"]
+            assert all((directory / b / "manifest.json").exists() for b in beams)
+
+
+@pytest.fixture
+def env(tmp_path):
+    return {**os.environ, "ILT_CACHE_DIR": str(tmp_path / "cache"), "OMP_NUM_THREADS": "1"}
+
+
+def test_sigkill_at_ten_moments_loses_nothing_and_resumes_identically(tmp_path, env):
+    config = tmp_path / "small.toml"
+    config.write_text(SMALL_RIG)
+    reference = tmp_path / "reference"
+    assert _ilt("run", config, "-w", reference, env=env).wait() == 0
+
+    ws = tmp_path / "ws"
+    delays = np.random.default_rng(2005).uniform(0.0, 0.2, len(TRIGGERS))
+    kept: dict[str, dict[str, str]] = {}
+    finished = []
+    for pattern, delay in zip(TRIGGERS, delays):
+        if not _run_and_kill(ws, config, pattern, delay, env):
+            finished.append(pattern)
+        _check_done_stages_are_complete(ws)
+        beams = _complete_beams(ws / "capture")
+        for name, files in kept.items():
+            assert beams.get(name) == files, f"completed {name} lost or changed after the kill at {pattern}"
+        kept = beams
+        assert verify_log(ws / "capture") == []
+    assert len(finished) <= 2, f"these runs finished before their kill: {finished}"
+
+    assert _ilt("run", config, "-w", ws, env=env).wait() == 0
+    result = CliRunner().invoke(cli, ["status", "-w", str(ws), "--json"])
+    assert [s["state"] for s in json.loads(result.stdout)] == ["done"] * 6
+    assert _complete_beams(ws / "capture").items() >= kept.items()
+    for name in RESULTS:
+        assert (ws / name).read_bytes() == (reference / name).read_bytes(), name
+    for frame in sorted((reference / "hdr").glob("beam-*.exr")) + [reference / "photos" / "flashlight.exr"]:
+        np.testing.assert_array_equal(read_frame(ws / frame.relative_to(reference)), read_frame(frame))

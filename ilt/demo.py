@@ -55,6 +55,7 @@ model = "ilt SimSensor"
 scene = "{scene}"
 px_per_beam = {px_per_beam}
 rows = 32
+spot = 0.1
 radiance_scale = 1.0e8
 
 [bracket]
@@ -77,12 +78,10 @@ def rig_config(scene: str, beams: int) -> str:
     """The demo's rig TOML for a scene: a line across the M, a grid over the box."""
     if scene == "m":
         plan = f'kind = "line"\npan = [-20.0, 20.0]\ntilt = 0.0\ncount = {beams}'
-        px = 16.0
     else:
         n = round((beams / 3) ** 0.5)
         plan = f'kind = "grid"\npan = [-10.0, 10.0]\ntilt = [-8.0, 6.0]\nshape = [{3 * n}, {n}]'
-        px = 8.0
-    return RIG_TEMPLATE.format(scene=scene, beams=beams, px_per_beam=px, plan=plan)
+    return RIG_TEMPLATE.format(scene=scene, beams=beams, px_per_beam=16.0, plan=plan)
 
 
 def run_scene(name: str, out: Path, quick: bool, cache_dir: Path, force: bool) -> dict:

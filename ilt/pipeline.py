@@ -227,7 +227,7 @@ def capture_photos(rig: RigConfig, kinds, out: Path, options) -> Path:
     from ilt.sim.sensor import write_dng
 
     c = rig.camera
-    scene = render_scene(c.scene, beams=make_plan(rig.plan).m, px_per_beam=c.px_per_beam, rows=c.rows)
+    scene = render_scene(c.scene, beams=make_plan(rig.plan).m, px_per_beam=c.px_per_beam, rows=c.rows, spot=c.spot)
     sensor = sim_sensor(scene)
     with staged_directory(out, force=True) as tmp:
         for kind in kinds:
@@ -294,17 +294,23 @@ def install_config(ws: Workspace, cfg: RunConfig) -> None:
         tmp.write_text(cfg.text)
 
 
+def check_capture(stage: Stage, force: bool) -> StageState:
+    """The capture's state; StageError when the scan differs from the config and not ``force``."""
+    state = stage_state(stage.directory, "capture", stage.parameters)
+    if state.state == STALE and not force:
+        raise StageError(f"{stage.directory}: {state.reason}; the scan differs from the config "
+                         "(use --force to move it aside and scan again)")
+    return state
+
+
 def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool) -> bool:
     """The capture stage: resumed when interrupted; a scan that differs from the config
     is moved aside (never deleted) only with ``force``."""
-    state = stage_state(stage.directory, "capture", stage.parameters)
+    state = check_capture(stage, force)
     if state.done and not force:
         log.info("capture: up to date (%s)", stage.directory)
         return False
     if state.state == STALE or (state.done and force):
-        if not force:
-            raise StageError(f"{stage.directory}: {state.reason}; the scan differs from the config "
-                             "(use --force to move it aside and scan again)")
         k = 1
         while (aside := stage.directory.with_name(f"{stage.directory.name}.previous-{k}")).exists():
             k += 1
@@ -323,9 +329,11 @@ def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool) -> boo
 
 def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False) -> list[dict]:
     """Run every stage that is not up to date, in order. Returns one summary per stage."""
+    stages = plan_stages(ws, cfg)
+    check_capture(stages[0], force)   # before the config is installed: a refused run changes nothing
     install_config(ws, cfg)
     summaries = []
-    for stage in plan_stages(ws, cfg):
+    for stage in stages:
         t0 = time.monotonic()
         if stage.name == "capture":
             ran = run_capture(ws, stage, cfg, force)

@@ -114,6 +114,7 @@ def test_changed_scan_is_not_overwritten_without_force(workspace, tmp_path):
     other.write_text(SMALL_RIG.replace("1/125", "1/250"))
     result = CliRunner().invoke(cli, ["run", str(other), "-w", str(workspace)])
     assert result.exit_code == 1 and "--force" in result.output
+    assert (workspace / "rig.toml").read_text() == SMALL_RIG     # a refused run changes nothing
 
 
 def test_unknown_stage_option_names_the_key(tmp_path):
@@ -126,3 +127,12 @@ def test_unknown_stage_option_names_the_key(tmp_path):
 def test_no_config_is_a_one_line_error(tmp_path):
     result = CliRunner().invoke(cli, ["status", "-w", str(tmp_path)])
     assert result.exit_code == 1 and "rig.toml" in result.output
+
+
+def test_quiet_and_no_progress_bars_off_a_terminal(workspace, tmp_path):
+    quiet = CliRunner().invoke(cli, ["-q", "run", "-w", str(workspace)])
+    assert quiet.exit_code == 0 and quiet.stderr == "", quiet.stderr
+    spots = ["centroids", str(workspace / "hdr"), "-o", str(tmp_path / "spots"), "--workers", "1"]
+    logged = CliRunner().invoke(cli, spots)          # stderr is not a terminal here
+    assert logged.exit_code == 0 and "\r" not in logged.stderr and "[" not in logged.stderr, logged.stderr
+    assert CliRunner().invoke(cli, ["-q", *spots, "--force"]).stderr == ""

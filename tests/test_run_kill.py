@@ -2,10 +2,11 @@
 calls done is incomplete, no completed beam is lost, and the final re-run gives results
 identical, bit for bit, to an uninterrupted run.
 
-Each kill is triggered by a file of the run appearing (a frame, a beam's manifest, a
-stage's temporary directory...) plus a seeded random delay, so the moments cover every
-stage whatever the speed of the machine; the runs go on in one workspace, each resuming
-what the last one left.
+Five kills fall in the capture, each a fixed delay after a file appears (the log, a frame,
+a beam's manifest, the capture's manifest); one in each later stage, a seeded random
+fraction of that stage's uninterrupted run time after `ilt run` logs that it started. So
+the moments cover every stage whatever the speed of the machine. The runs go on in one
+workspace, each resuming what the last one left.
 """
 
 import json
@@ -13,6 +14,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -26,19 +28,16 @@ from ilt.cli import cli
 from ilt.frames import read_frame
 from ilt.manifest import fingerprint_file, read_manifest
 
-#: what triggers each kill: a path (glob, relative to the workspace) that appears during the run
-TRIGGERS = (
-    "capture/capture.jsonl",
-    "capture/beam-00001/frame-02.dng",
-    "capture/beam-00003/manifest.json",
-    "capture/beam-00006/dark.dng",
-    "capture/manifest.json",
-    ".hdr.tmp-*/beam-00004.exr",
-    ".spots.tmp-*",
-    ".isf.tmp-*",
-    ".photos.tmp-*",
-    "decompose/manifest.json",
+#: the kills: (a path appearing in the workspace, glob; seconds after it) during the capture,
+#: then (a stage starting, as logged; the fraction of its uninterrupted run time after it)
+CAPTURE_KILLS = (
+    ("capture/capture.jsonl", 0.15),
+    ("capture/beam-00001/frame-02.dng", 0.1),
+    ("capture/beam-00003/manifest.json", 0.0),
+    ("capture/beam-00006/dark.dng", 0.2),
+    ("capture/manifest.json", 0.0),
 )
+STAGE_KILLS = ("merge", "centroids", "build-isf", "photos", "decompose")
 #: results compared with the uninterrupted run's, byte for byte
 RESULTS = ("isf/T.npy", "isf/scales.npy", "isf/samples.csv", "spots/spots.csv",
            "decompose/flashlight/bounces.npy", "decompose/flashlight/residual.npy")
@@ -46,28 +45,35 @@ RESULTS = ("isf/T.npy", "isf/scales.npy", "isf/samples.csv", "spots/spots.csv",
 
 def _ilt(*args, env):
     return subprocess.Popen([sys.executable, "-m", "ilt", *map(str, args)], env=env, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _new_paths(root: Path, pattern: str, before: set) -> bool:
-    return any(p not in before for p in root.glob(pattern))
-
-
-def _run_and_kill(ws: Path, config: Path, pattern: str, delay: float, env) -> bool:
-    """Start `ilt run`, SIGKILL its process group ``delay`` s after a new ``pattern`` path
-    appears in ``ws``. Returns True when it was killed (False: it finished first)."""
-    before = set(ws.glob(pattern))
+def _run_and_kill(ws: Path, config: Path, env, *, pattern: str = "", stage: str = "", delay: float) -> bool:
+    """Start `ilt run` and SIGKILL its process group ``delay`` s after a new path matching
+    ``pattern`` appears in ``ws``, or after it logs that ``stage`` is running. Returns True
+    when it was killed, False when it finished first."""
+    before = set(ws.glob(pattern)) if pattern else set()
+    log: list[str] = []
     proc = _ilt("run", config, "-w", ws, env=env)
+    reader = threading.Thread(target=lambda: log.extend(proc.stderr), daemon=True)
+    reader.start()
+
+    def triggered():
+        if pattern:
+            return any(p not in before for p in ws.glob(pattern))
+        return any(f"INFO: {stage}: running" in line for line in list(log))
+
     deadline = time.monotonic() + 60
-    while proc.poll() is None and not _new_paths(ws, pattern, before):
-        assert time.monotonic() < deadline, f"{pattern} never appeared"
+    while proc.poll() is None and not triggered():
+        assert time.monotonic() < deadline, f"{pattern or stage} never came"
         time.sleep(0.002)
     time.sleep(delay)
     killed = proc.poll() is None
     if killed:
         os.killpg(proc.pid, signal.SIGKILL)
-    _, err = proc.communicate()
-    assert killed or proc.returncode == 0, err.decode()
+    proc.wait()
+    reader.join()
+    assert killed or proc.returncode == 0, "".join(log)
     return killed
 
 
@@ -101,19 +107,24 @@ def test_sigkill_at_ten_moments_loses_nothing_and_resumes_identically(tmp_path, 
     config = tmp_path / "small.toml"
     config.write_text(SMALL_RIG)
     reference = tmp_path / "reference"
-    assert _ilt("run", config, "-w", reference, env=env).wait() == 0
+    proc = _ilt("run", config, "-w", reference, "--json", env=env)
+    out, err = proc.communicate()
+    assert proc.returncode == 0, err
+    seconds = {s["stage"]: s["seconds"] for s in json.loads(out)}
 
     ws = tmp_path / "ws"
-    delays = np.random.default_rng(2005).uniform(0.0, 0.2, len(TRIGGERS))
+    fractions = np.random.default_rng(2005).uniform(0.05, 0.7, len(STAGE_KILLS))
+    kills = [{"pattern": p, "delay": d} for p, d in CAPTURE_KILLS] + \
+        [{"stage": s, "delay": f * seconds[s]} for s, f in zip(STAGE_KILLS, fractions)]
     kept: dict[str, dict[str, str]] = {}
     finished = []
-    for pattern, delay in zip(TRIGGERS, delays):
-        if not _run_and_kill(ws, config, pattern, delay, env):
-            finished.append(pattern)
+    for kill in kills:
+        if not _run_and_kill(ws, config, env, **kill):
+            finished.append(kill)
         _check_done_stages_are_complete(ws)
         beams = _complete_beams(ws / "capture")
         for name, files in kept.items():
-            assert beams.get(name) == files, f"completed {name} lost or changed after the kill at {pattern}"
+            assert beams.get(name) == files, f"completed {name} lost or changed by the kill {kill}"
         kept = beams
         assert verify_log(ws / "capture") == []
     assert len(finished) <= 2, f"these runs finished before their kill: {finished}"

@@ -87,7 +87,7 @@ def make_sim_camera(cfg, plan_steps: np.ndarray, layout: tuple[int, int],
     from ilt.sim.sensor import write_dng
 
     m = len(plan_steps)
-    scene = render_scene(cfg.scene, beams=m, px_per_beam=cfg.px_per_beam, rows=cfg.rows)
+    scene = render_scene(cfg.scene, beams=m, px_per_beam=cfg.px_per_beam, rows=cfg.rows, spot=cfg.spot)
     if scene.m != m or tuple(scene.layout) != tuple(layout):
         raise ConfigError(f"[camera] scene {cfg.scene!r} renders {scene.m} beams in layout {list(scene.layout)}, "
                           f"but the plan has {m} in {list(layout)}")

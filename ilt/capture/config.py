@@ -56,6 +56,7 @@ class CameraConfig:
     radiance_scale: float = 1.0e8
     px_per_beam: float = 32.0
     rows: int = 32
+    spot: float = 0.1
     seed: int = 0
     faults: tuple[str, ...] = ()
 

@@ -223,7 +223,8 @@ def prepare_output(directory: Path, resume: bool) -> None:
             raise ConfigError(f"{directory}: no {LOG_NAME} to resume (start without --resume)")
     elif logfile.exists():
         raise ConfigError(f"{directory}: holds a capture ({LOG_NAME}); use --resume to continue it")
-    elif directory.exists() and any(directory.iterdir()):
+    elif directory.exists() and any(p for p in directory.iterdir() if not p.name.startswith(".write-test-")):
+        # a probe left by a process killed between its write and unlink is not a capture
         raise ConfigError(f"{directory}: exists and is not empty; choose a new output directory")
     try:
         directory.mkdir(parents=True, exist_ok=True)

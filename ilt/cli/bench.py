@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from ilt.cli.options import emit, json_option
+from ilt.cli.options import emit, json_option, note
 
 
 def _list(kind):
@@ -51,9 +51,9 @@ def command(quick, sizes, scenes, noises, solvers, batch, n_bounces, repeats, ou
         raise click.BadParameter(f"unknown solver(s) {sorted(unknown)}", param_hint="--solvers")
     sizes = sizes or (bench.QUICK_SIZES if quick else bench.FULL_SIZES)
     noises = noises or ([0.0, 1e-3] if quick else [0.0, 1e-6, 1e-4, 1e-2])
-    click.echo(bench.HEADER, err=True)
+    note(bench.HEADER)
     rows = bench.run_bench(sizes, scenes, noises, solvers, batch, n_bounces, repeats,
-                           progress=lambda r: click.echo(bench.format_row(r), err=True))
+                           progress=lambda r: note(bench.format_row(r)))
     data = bench.rows_json(rows)
     paths = []
     if output:

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
 from ilt.cli.centroids import _count, workers_option
-from ilt.cli.options import emit, force_option, json_option, stage_output_option, workspace_option
+from ilt.cli.options import (
+    emit,
+    force_option,
+    json_option,
+    progress_bar,
+    stage_output_option,
+    workspace_option,
+)
 
 
 @click.command("build-isf")
@@ -40,8 +45,8 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
     hdr_dir, spots_dir = workspace.resolve(hdr_dir, "merge"), workspace.resolve(spots_dir, "centroids")
     output = workspace.resolve(output, "build-isf")
 
-    with click.progressbar(length=_count(hdr_dir), label="build-isf", file=sys.stderr) as bar:
+    with progress_bar(_count(hdr_dir), "build-isf") as update:
         summary = build_isf(hdr_dir, spots_dir, output, sampling=sampling, min_separation=min_separation,
                             lit_fraction=lit_fraction, max_cell_radius=max_cell_radius, workers=workers,
-                            progress=bar.update, force=force)
+                            progress=update, force=force)
     emit(as_json, summary, [summary["output"]])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from ilt.cli.options import emit, force_option, json_option
+from ilt.cli.options import emit, force_option, json_option, note
 
 
 @click.command("calibrate")
@@ -37,6 +37,6 @@ def command(inputs, output, times, order, max_order, pin_span, tolerance, no_plo
     path, result = calibrate(list(inputs), output, times=parse_times(times) if times else None,
                              order=order, max_order=max_order, pin_span=pin_span,
                              tolerance=tolerance, plot=not no_plot, force=force)
-    click.echo(f"ilt: order {result['order']}, residual {result['residual']:.3g}, "
-               f"max |f(M) - M| = {result['linearity_error']:.3g}", err=True)
+    note(f"ilt: order {result['order']}, residual {result['residual']:.3g}, "
+         f"max |f(M) - M| = {result['linearity_error']:.3g}")
     emit(as_json, result, [str(path)])

@@ -8,7 +8,9 @@ import time
 
 import click
 
-from ilt.cli.options import emit, json_option, workspace_option
+from ilt.cli.options import emit, informing, json_option, workspace_option
+
+log = logging.getLogger(__name__)
 
 
 @click.command("capture")
@@ -35,22 +37,21 @@ def command(config, output, resume, workspace, as_json):
     start = time.monotonic()
 
     def on_beam(result, done, total):
-        if not logging.getLogger().isEnabledFor(logging.INFO):
+        if not informing():
             return  # -q: only errors on stderr
-        elapsed = time.monotonic() - start
-        eta = elapsed / done * (total - done)
-        width = 24
-        bar = "#" * round(width * done / total)
+        eta = (time.monotonic() - start) / done * (total - done)
         skipped = f", {result.skipped} exposures skipped" if result.skipped else ""
-        end = "\r" if sys.stderr.isatty() and done < total else "\n"
-        click.echo(f"[{bar:<{width}}] beam {result.beam} ({done}/{total}) {result.seconds:.1f} s"
-                   f"{skipped}, ETA {eta:.0f} s", err=True, nl=False)
-        click.echo(end, err=True, nl=False)
+        if sys.stderr.isatty():
+            width = 24
+            bar = "#" * round(width * done / total)
+            click.echo(f"\r[{bar:<{width}}] beam {result.beam} ({done}/{total}) {result.seconds:.1f} s"
+                       f"{skipped}, ETA {eta:.0f} s", err=True, nl=done == total)
+        elif done == total or done % max(1, total // 10) == 0:  # a log: a line every tenth of the scan
+            log.info("capture: %d/%d beams, ETA %.0f s%s", done, total, eta, skipped)
 
     summary = capture(cfg, output, resume=resume, on_beam=on_beam)
     if summary["exposures_skipped"]:
         full, skipped = summary["exposures_full"], summary["exposures_skipped"]
-        click.echo(f"ilt: adaptive bracketing skipped {skipped} of {full} exposures ({100 * skipped / full:.0f}%), "
-                   f"about {summary['seconds_saved']:.1f} s saved",
-                   err=True)
+        log.info("adaptive bracketing skipped %d of %d exposures (%.0f%%), about %.1f s saved",
+                 skipped, full, 100 * skipped / full, summary["seconds_saved"])
     emit(as_json, summary, [summary["output"]])

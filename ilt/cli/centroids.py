@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
 from ilt.cli.options import (
     emit,
     force_option,
     json_option,
+    progress_bar,
     stage_output_option,
     workspace_option,
 )
@@ -68,8 +67,8 @@ def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongatio
                             max_elongation=max_elongation, large_factor=large_factor, max_area=max_area,
                             saturation=saturation, roi=roi, refine=refine)
 
-    with click.progressbar(length=_count(hdr_dir), label="centroids", file=sys.stderr) as bar:
-        summary = run_centroids(hdr_dir, output, params, dark=dark, workers=workers, progress=bar.update,
+    with progress_bar(_count(hdr_dir), "centroids") as update:
+        summary = run_centroids(hdr_dir, output, params, dark=dark, workers=workers, progress=update,
                                 force=force)
     emit(as_json, summary, [summary["output"]])
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from ilt.cli.options import emit, json_option, output_option
+from ilt.cli.options import emit, json_option, note, output_option
 
 
 @click.command("demo")
@@ -26,6 +26,6 @@ def command(output, quick, force, as_json):
 
     results = run_demo(output, quick=quick, force=force)
     for r in results:
-        click.echo(error_table(r), err=True)
-    click.echo(f"ilt: demo: figures in {output}/report/index.html (and {output}/<scene>/report/)", err=True)
+        note(error_table(r))
+    note(f"ilt: demo: figures in {output}/report/index.html (and {output}/<scene>/report/)")
     emit(as_json, results, [f"{output}/report/index.html"] + [r["report"] for r in results])

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import sys
 
 import click
@@ -21,6 +23,28 @@ bounces_option = click.option(
 )
 
 
+def informing() -> bool:
+    """Whether the log on stderr shows INFO (not ``-q``)."""
+    return logging.getLogger().isEnabledFor(logging.INFO)
+
+
+def note(text: str) -> None:
+    """A result for people (a table, where the figures are) on stderr; nothing with ``-q``."""
+    if informing():
+        click.echo(text, err=True)
+
+
+@contextlib.contextmanager
+def progress_bar(length: int, label: str):
+    """Yield ``update(n)`` of a progress bar with ETA on stderr, drawn only when stderr is a
+    terminal and the log shows INFO: logs and pipes get no bar lines."""
+    if not (sys.stderr.isatty() and informing()):
+        yield lambda n=1: None
+        return
+    with click.progressbar(length=length, label=label, file=sys.stderr, show_eta=True) as bar:
+        yield bar.update
+
+
 def emit(as_json: bool, summary, paths: list[str]) -> None:
     """What a pipe needs goes to stdout: the JSON summary, or the paths written."""
     if as_json:
@@ -29,7 +53,6 @@ def emit(as_json: bool, summary, paths: list[str]) -> None:
     else:
         for p in paths:
             click.echo(p)
-
 
 
 def _workspace(ctx, param, value):

@@ -6,7 +6,7 @@ import time
 
 import click
 
-from ilt.cli.options import emit, json_option, workspace_option
+from ilt.cli.options import emit, json_option, note, workspace_option
 
 
 @click.command("run")
@@ -27,6 +27,6 @@ def command(config, workspace, force, as_json):
     start = time.monotonic()
     summaries = run_pipeline(workspace, workspace_config(workspace, config), force=force)
     ran = [s["stage"] for s in summaries if s["ran"]]
-    click.echo(f"ilt: run: {'ran ' + ', '.join(ran) if ran else 'every stage was up to date'} "
-               f"({time.monotonic() - start:.1f} s)", err=True)
+    note(f"ilt: run: {'ran ' + ', '.join(ran) if ran else 'every stage was up to date'} "
+         f"({time.monotonic() - start:.1f} s)")
     emit(as_json, summaries, [s["directory"] for s in summaries])

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
-from ilt.cli.options import bounces_option, emit, force_option, json_option, output_option
+from ilt.cli.options import (
+    bounces_option,
+    emit,
+    force_option,
+    json_option,
+    output_option,
+    progress_bar,
+)
 
 
 @click.command("simulate")
@@ -53,8 +58,8 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
                           px_per_beam=px_per_beam)
         params = {"scene": scene, "beams": rs.m, "albedo": albedo, "seed": seed, "spot": spot, "fine": fine,
                   "px_per_beam": px_per_beam}
-        with click.progressbar(length=rs.m, label="rendering beams", file=sys.stderr) as bar:
-            path = write_frames(rs, output, params, n_bounces=n_bounces, force=force, progress=bar.update)
+        with progress_bar(rs.m, "rendering beams") as update:
+            path = write_frames(rs, output, params, n_bounces=n_bounces, force=force, progress=update)
         emit(as_json, {"output": str(path), "scene": scene, "m": rs.m, "layout": list(rs.layout),
                        "frame_shape": list(rs.frame_shape)}, [str(path)])
         return

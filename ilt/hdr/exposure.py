@@ -8,7 +8,6 @@ given by hand (``--times``). These are nominal values: a camera's 1/125 s is rea
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path

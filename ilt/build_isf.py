@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ilt.cells import cell_operator, integrate_with, voronoi_cells
 from ilt.frames import (
@@ -59,16 +60,22 @@ def select_beams(beams: list[int], spots, min_separation: float) -> tuple[list[i
         else:
             keep.append(i)
     xy = np.array([[spots[i].x, spots[i].y] for i in keep]).reshape(-1, 2)
+    # candidates for near-duplicates: pairs closer than min_separation (a k-d tree, not all pairs)
+    close: dict[int, list[int]] = {}
+    for a, b in cKDTree(xy).query_pairs(min_separation) if len(xy) > 1 else ():
+        close.setdefault(max(a, b), []).append(min(a, b))
     kept: list[int] = []
+    kept_k: set[int] = set()
     for k, i in enumerate(keep):
-        if kept:
-            d = np.hypot(*(xy[[keep.index(q) for q in kept]] - xy[k]).T)
+        earlier = [q for q in close.get(k, ()) if q in kept_k]
+        if earlier:
+            d = np.hypot(*(xy[earlier] - xy[k]).T)
             nearest = int(np.argmin(d))
-            if d[nearest] < min_separation:
-                drops.append({"beam": beams[i], "reason": f"near-duplicate: {d[nearest]:.3g} px from beam "
-                                                           f"{beams[kept[nearest]]} (< {min_separation:g})"})
-                continue
+            drops.append({"beam": beams[i], "reason": f"near-duplicate: {d[nearest]:.3g} px from beam "
+                                                       f"{beams[keep[earlier[nearest]]]} (< {min_separation:g})"})
+            continue
         kept.append(i)
+        kept_k.add(k)
     return kept, sorted(drops, key=lambda d: d["beam"])
 
 
@@ -148,8 +155,6 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
         lit = None if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction)
         if max_cell_radius is None:
-            from scipy.spatial import cKDTree
-
             nn = cKDTree(on_grid).query(on_grid, k=2)[0][:, 1]
             max_cell_radius = 2.0 * float(np.median(nn))
         labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius)
@@ -215,10 +220,11 @@ def centroids_and_isf(hdr_dir: str | os.PathLike, spots_out: str | os.PathLike, 
     parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=parent, prefix=".frames-") as scratch:
         cache = scratch if dark is None else None
-        spots = run_centroids(hdr_dir, spots_out, params or SpotParameters(), dark=dark, executor=executor,
-                              workers=workers, progress=progress, force=force, frame_cache=cache)
-        isf = build_isf(hdr_dir, spots_out, isf_out, executor=executor, workers=workers, progress=progress,
-                        force=force, frame_cache=cache, **options)
+        with beam_executor(executor, workers) as pool:  # one pool for both stages
+            spots = run_centroids(hdr_dir, spots_out, params or SpotParameters(), dark=dark, executor=pool,
+                                  workers=workers, progress=progress, force=force, frame_cache=cache)
+            isf = build_isf(hdr_dir, spots_out, isf_out, executor=pool, workers=workers, progress=progress,
+                            force=force, frame_cache=cache, **options)
     return spots, isf
 
 

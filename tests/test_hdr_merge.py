@@ -248,3 +248,25 @@ def test_8bit_merge_beats_opencv_debevec_and_robertson():
         assert np.median(ours) < np.median(other), name
         assert np.sqrt(np.mean(ours**2)) < np.sqrt(np.mean(other**2)), name
     assert np.median(raw) < np.median(ours)
+
+
+def test_pixels_clipped_in_every_exposure_are_reported(tmp_path, caplog):
+    """A spot too bright for the shortest exposure is merged as a lower bound: the stage
+    warns naming the beam and the count, and the manifest lists the beam."""
+    from ilt.hdr.stages import merge_capture
+
+    rng = np.random.default_rng(6)
+    cap = tmp_path / "cap"
+    bright = spot_radiance((32, 48), (20, 16), 1e13, 2.0, floor=500)  # clips even at 1/8000 s, f/16
+    fine = spot_radiance((32, 48), (20, 16), 5e8, 2.0, floor=500)
+    write_bracket(cap / "beam-00000", fine, PAPER_BRACKET, SENSOR, rng)
+    write_bracket(cap / "beam-00001", bright, PAPER_BRACKET, SENSOR, rng)
+    with caplog.at_level("WARNING"):
+        _, summary = merge_capture(cap, tmp_path / "hdr")
+    manifest = json.loads((tmp_path / "hdr" / "manifest.json").read_text())
+    assert manifest["beams_with_clipped_pixels"] == ["beam-00001"]
+    clipped = {s["beam"]: s["saturated_pixels"] for s in manifest["beam_summaries"]}
+    assert clipped["beam-00000"] == 0 and clipped["beam-00001"] > 0
+    assert summary["saturated_pixels"] == clipped["beam-00001"]
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any(f"beam-00001: {clipped['beam-00001']} pixels saturated in every exposure" in w for w in warnings)

@@ -238,6 +238,11 @@ def merge_capture(
     logged = logged_fingerprints(capture_dir)
     with staged_directory(output, force=force) as tmp:
         summaries = _run_beams(beams, tmp, options, executor, workers, logged)
+        clipped = [s for s in summaries if s["saturated_pixels"]]
+        for s in clipped:
+            log.warning("%s: %d pixels saturated in every exposure: their values are lower bounds "
+                        "(add a shorter exposure or a smaller aperture to the bracket)", s["beam"],
+                        s["saturated_pixels"])
         inputs = {k: v for s in summaries for k, v in s.pop("inputs").items()}
         hashed = sum(s.pop("hashed") for s in summaries)
         first = summaries[0]
@@ -249,6 +254,7 @@ def merge_capture(
                               "note": "pixel (i, j) is at full-frame x = 0.5 + 2 j, y = 0.5 + 2 i"},
             "beam_summaries": summaries,
             "frames_per_beam": first["frames"],
+            "beams_with_clipped_pixels": [s["beam"] for s in clipped],
         })
     return Path(output), {"output": str(output), "beams": len(summaries),
                           "saturated_pixels": sum(s["saturated_pixels"] for s in summaries)}

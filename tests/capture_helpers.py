@@ -56,3 +56,35 @@ def frame_hashes(directory: Path) -> dict[str, str]:
 
 def pointing_of(emu, laser_emu=None):
     return lambda: (emu.position("P"), emu.position("T"), (laser_emu or emu).aux)
+
+
+def run_rig_toml(count: int, px_per_beam: float, camera: str, tail: str) -> str:
+    """A rig config for `ilt run` tests: the emulated unit, the sim camera on the M scene
+    (``camera``: its extra lines), a short paper-like bracket with an f/16 frame, a line
+    of ``count`` beams, then ``tail`` (the later stages' sections)."""
+    return f"""\
+[ptu]
+port = "emulator"
+settle = 0.0
+emulator_speed = 20000
+
+[camera]
+backend = "sim"
+model = "ilt SimSensor"
+scene = "m"
+px_per_beam = {px_per_beam:.1f}
+rows = {int(px_per_beam)}
+{camera}
+
+[bracket]
+shutter = ["1/15", "1/125", "1/1000", "1/8000"]
+aperture = 1.2
+extra = [{{ shutter = "1/8000", aperture = 16 }}]
+
+[plan]
+kind = "line"
+pan = [-20.0, 20.0]
+tilt = 0.0
+count = {count}
+
+{tail}"""

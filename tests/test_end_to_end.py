@@ -3,43 +3,20 @@ the renderer's truth are at most 1.2x those of the same decomposition from noise
 
 import numpy as np
 import pytest
+from capture_helpers import run_rig_toml
 
 from ilt.end_to_end import compare, green_grid, ideal_workspace
 from ilt.pipeline import load_run_config, run_pipeline
 from ilt.sim.sensor import SensorModel
 from ilt.workspace import Workspace
 
-RIG = """\
-[ptu]
-port = "emulator"
-settle = 0.0
-emulator_speed = 20000
-
-[camera]
-backend = "sim"
-model = "ilt SimSensor"
-scene = "m"
-px_per_beam = 16.0
-rows = 16
-spot = 0.1
-
-[bracket]
-shutter = ["1/15", "1/125", "1/1000", "1/8000"]
-aperture = 1.2
-extra = [{ shutter = "1/8000", aperture = 16 }]
-
-[plan]
-kind = "line"
-pan = [-20.0, 20.0]
-tilt = 0.0
-count = 16
-
+RIG = run_rig_toml(16, 16, "spot = 0.1", """\
 [photos]
 sim = ["flashlight", "room"]
 
 [decompose]
 bounces = 4
-"""
+""")
 
 
 @pytest.fixture(scope="module")

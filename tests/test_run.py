@@ -3,37 +3,14 @@
 import json
 
 import pytest
+from capture_helpers import run_rig_toml
 from click.testing import CliRunner
 
 from ilt.cli import cli
 from ilt.pipeline import load_run_config, workspace_status
 from ilt.workspace import Workspace
 
-SMALL_RIG = """\
-[ptu]
-port = "emulator"
-settle = 0.0
-emulator_speed = 20000
-
-[camera]
-backend = "sim"
-model = "ilt SimSensor"
-scene = "m"
-px_per_beam = 8.0
-rows = 8
-radiance_scale = 1.0e8
-
-[bracket]
-shutter = ["1/15", "1/125", "1/1000", "1/8000"]
-aperture = 1.2
-extra = [{ shutter = "1/8000", aperture = 16 }]
-
-[plan]
-kind = "line"
-pan = [-20.0, 20.0]
-tilt = 0.0
-count = 8
-
+SMALL_RIG = run_rig_toml(8, 8, "radiance_scale = 1.0e8", """\
 [centroids]
 workers = 1
 
@@ -45,7 +22,7 @@ sim = ["flashlight"]
 
 [decompose]
 bounces = 4
-"""
+""")
 
 
 def run(*args):

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from ilt.imageio import ImageError, read_exr
+from ilt.imageio import ImageError, one_thread_per_process, read_exr
 from ilt.manifest import MANIFEST
 
 _BEAM_NAME = re.compile(r"^beam-(\d+)\.exr$", re.IGNORECASE)
@@ -221,13 +221,6 @@ def load_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None) ->
     return read_frame(path, shape)
 
 
-def _single_threaded_decoder() -> None:
-    """Worker initializer: one OpenImageIO thread per worker process, so that N workers
-    use N cores (by default every process would decode with a thread per core)."""
-    oiio.attribute("threads", 1)
-    oiio.attribute("exr_threads", 1)
-
-
 def chunks(items: Sequence, size: int) -> list[Sequence]:
     """Consecutive slices of ``items`` of at most ``size``."""
     return [items[i:i + size] for i in range(0, len(items), size)]
@@ -246,7 +239,7 @@ def beam_executor(executor: Executor | None, workers: int | None) -> Iterator[Ex
     if workers == 1:
         yield None
         return
-    with ProcessPoolExecutor(max_workers=workers, initializer=_single_threaded_decoder) as pool:
+    with ProcessPoolExecutor(max_workers=workers, initializer=one_thread_per_process) as pool:
         yield pool
 
 

@@ -50,6 +50,28 @@ def test_merge_matches_cramer_rao_bound_over_the_range():
     assert abs(np.mean(ratio) - 1) < 0.03
 
 
+@pytest.mark.parametrize("strip", [1, 200, 1 << 40])
+def test_merge_by_strips_of_rows_equals_the_whole_image(monkeypatch, strip):
+    """Strips of rows (cache-sized) give the result of one pass over the whole image,
+    bit for bit, also when one strip's rows are all saturated or all black."""
+    import ilt.hdr.merge as merge
+
+    rng = np.random.default_rng(5)
+    h, w = 37, 23
+    X = _ramp(h, w, 0.5, 8.5)
+    X[3] = 1e12  # a row saturated in every frame
+    X[4] = 0.0  # a black row
+    e = np.array([1e-3, 1e-2, 1e-1])
+    frames = [np.minimum(rng.poisson(X * t) + rng.normal(0, 2, X.shape), 16000).astype(np.float32) for t in e]
+    sats = [f >= 15000 for f in frames]
+    whole = merge_bracket(frames, e, sats)
+    monkeypatch.setattr(merge, "STRIP_SAMPLES", strip)
+    parts = merge_bracket(frames, e, sats)
+    for a, b in zip(whole, parts):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert parts[2][3].all() and not parts[2][4].any() and parts[1][4].min() >= 1
+
+
 def test_all_saturated_and_all_black_are_errors():
     z = np.full((4, 5), 100.0)
     with pytest.raises(MergeError, match="saturated"):

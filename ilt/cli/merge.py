@@ -23,7 +23,9 @@ from ilt.cli.options import emit, force_option, json_option, workspace_option
 @click.option("--margin", type=click.FloatRange(0, 0.5), default=0.03, show_default=True,
               help="Samples within this fraction of the white level count as saturated.")
 @click.option("--color", is_flag=True, help="Merge linear camera RGB (R, G, B channels) instead of green.")
-@click.option("--compression", type=click.Choice(["zip", "zips", "piz"]), default="zip", show_default=True)
+@click.option("--compression", type=click.Choice(["zip:1", "zip", "zip:9", "zips", "piz"]), default="zip:1",
+              show_default=True, help="Lossless EXR compression; zip:1 is deflate at its fastest level "
+              "(noisy float data compresses little more at higher levels).")
 @click.option("-j", "--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Beams merged in parallel (processes).")
 @workspace_option

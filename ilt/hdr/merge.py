@@ -102,9 +102,41 @@ def merge_bracket(
         raise MergeError("a response needs the full_scale (DN) its values are normalised by")
     floor = float(noise.floor if black_floor is None else black_floor)
     dtype = np.float32 if all(f.dtype == np.float32 for f in frames) else np.float64
+    radiance = np.empty(shape, np.float32)
+    count = np.empty(shape, np.uint8)
+    all_clipped = np.empty(shape, bool)
+    row = int(np.prod(shape[1:], dtype=np.int64))
+    step = max(1, STRIP_SAMPLES // max(row, 1))
+    any_unclipped = bright = False
+    for r0 in range(0, shape[0], step):
+        rows = slice(r0, r0 + step)
+        u, b = _merge_rows(
+            [f[rows] for f in frames], e,
+            [_clipped(k, frames[k], rows, saturated, saturation) for k in range(K)],
+            noise, response, full_scale, floor, None if dark is None else dark[rows], dtype,
+            radiance[rows], count[rows], all_clipped[rows])
+        any_unclipped |= u
+        bright |= b
+    if not any_unclipped:
+        raise MergeError("every pixel of every frame is saturated")
+    if not bright:
+        raise MergeError(f"every frame is black: no sample above the noise floor ({floor:.3g} DN)")
+    return radiance, count, all_clipped
+
+
+#: samples per frame merged at a time: a strip of rows whose temporaries stay in cache
+STRIP_SAMPLES = 1 << 15
+
+
+def _merge_rows(frames, e, clipped, noise, response, full_scale, floor, dark, dtype,
+                radiance, count, all_clipped) -> tuple[bool, bool]:
+    """`merge_bracket` on a strip of rows, written into ``radiance``, ``count`` and
+    ``all_clipped`` (views); returns (any sample unclipped, any sample above ``floor``)."""
+    K = len(frames)
+    shape = frames[0].shape
     order = np.argsort(-e, kind="stable")  # longest first: "longest unclipped" is the first seen
     linear = [_linearise(frames[k], dark, response, full_scale, dtype) for k in range(K)]
-    unclipped = [~_clipped(k, frames[k], saturated, saturation) for k in range(K)]
+    unclipped = [~c for c in clipped]
 
     # first pass: read-noise weights e^2 / s^2 (common factor dropped). Masks multiply
     # rather than select: numpy's where= is ten times slower than a product
@@ -121,10 +153,6 @@ def merge_bracket(
         den += keep
         any_unclipped |= unclipped[k]
         bright = bright or bool(np.any(unclipped[k] & (linear[k] > floor)))
-    if not any_unclipped.any():
-        raise MergeError("every pixel of every frame is saturated")
-    if not bright:
-        raise MergeError(f"every frame is black: no sample above the noise floor ({floor:.3g} DN)")
     x0 = _ratio(num, den)
 
     # second pass: inverse-variance weights at the first-pass X; near-black is judged by the
@@ -134,7 +162,7 @@ def merge_bracket(
     read = float(noise.read_noise**2 + 1 / 12)
     num[:] = 0.0
     den[:] = 0.0
-    count = np.zeros(shape, np.uint8)
+    count[...] = 0
     seen = np.zeros(shape, bool)
     weight = np.empty(shape, dtype)
     for k in order:
@@ -149,13 +177,12 @@ def merge_bracket(
         weight *= ek
         den += weight
         count += use
-    radiance = _ratio(num, den, fallback=x0)
-
-    all_clipped = ~any_unclipped
+    radiance[...] = _ratio(num, den, fallback=x0)
+    np.logical_not(any_unclipped, out=all_clipped)
     if all_clipped.any():
         k_min = order[-1]
         radiance[all_clipped] = linear[k_min][all_clipped] / e[k_min]
-    return radiance.astype(np.float32, copy=False), count, all_clipped
+    return bool(any_unclipped.any()), bright
 
 
 def _ratio(num, den, fallback=None) -> np.ndarray:
@@ -176,12 +203,13 @@ def _linearise(frame, dark, response, full_scale, dtype) -> np.ndarray:
     return z
 
 
-def _clipped(k, raw, saturated, saturation) -> np.ndarray:
+def _clipped(k, raw, rows: slice, saturated, saturation) -> np.ndarray:
+    """Clipped samples of frame ``k`` (``raw``) in ``rows``."""
     if saturated is not None:
-        return np.broadcast_to(np.asarray(saturated[k], bool), raw.shape)
+        return np.broadcast_to(np.asarray(saturated[k], bool), raw.shape)[rows]
     if saturation is not None:
-        return np.asarray(raw) >= saturation[k]
-    return np.zeros(raw.shape, bool)
+        return np.asarray(raw[rows]) >= saturation[k]
+    return np.zeros(raw[rows].shape, bool)
 
 
 def cramer_rao_bound(radiance, exposures, saturation, noise: NoiseModel = NoiseModel(),

@@ -118,8 +118,7 @@ def _green(path: Path, mosaic: np.ndarray, meta: dict, margin: float, dtype):
     black_g = (black[greens[0]] + black[greens[1]]) / 2
     top_black = max(black[greens[0]], black[greens[1]])
     saturation = (white - top_black) * (1.0 - margin)
-    green = g[0].astype(dtype)
-    green += g[1]
+    green = np.add(g[0], g[1], dtype=dtype)
     green *= 0.5
     green -= black_g
     saturated = np.maximum(g[0], g[1]) >= saturation + top_black

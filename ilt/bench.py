@@ -5,9 +5,10 @@ benchmark times, as the median of repeats,
 
 - ``scipy``: the bare baseline, ``scipy.linalg.inv(T)`` (getrf + getri), ``C1 = T1 T^-1``
   formed, then the bounce recursion with matrix products;
-- each ilt solver (``dense``, ``mixed``, ``blocks``; see :mod:`ilt.solvers`): build the
-  operator and split a batch of photos into N bounces; for noisy T also
-  ``regularised`` (:mod:`ilt.regularise`, with the true sigma, then ``dense``);
+- each ilt solver (``dense``, ``mixed``, ``blocks``, ``series``; see :mod:`ilt.solvers`):
+  build the operator and split a batch of photos into N bounces; for noisy T also
+  ``regularised`` (:mod:`ilt.regularise`, with the true sigma, then ``dense``). A
+  solver that refuses T (``series`` on a dense T) gets a row saying why, no figures;
 
 and measures each against the simulator's exact truth: the worst relative error of
 any bounce ``max_n ||Ln - Ln*|| / ||Ln*||``, the error per bounce, the relative error
@@ -29,29 +30,33 @@ from ilt.evaluate import relative_errors
 from ilt.regularise import regularise_isf
 from ilt.sim import ILLUMINATIONS, make_scene
 from ilt.solvers import build_operator
-from ilt.transport import bounce_images
+from ilt.transport import TransportError, bounce_images
 
 QUICK_SIZES = (256, 512, 1024)
 FULL_SIZES = (256, 512, 1024, 2048, 4096)
-SOLVERS = ("scipy", "dense", "mixed", "blocks", "regularised")
+SOLVERS = ("scipy", "dense", "mixed", "blocks", "series", "regularised")
 
 
 @dataclass
 class BenchRow:
+    """One solver on one case; a solver that refused T has ``refused`` (its reason)
+    and no figures."""
+
     scene: str
     m: int
     noise: float
     solver: str
     batch: int
     bounces: int
-    seconds: float
-    ratio_to_scipy: float
-    peak_mib: float
-    bounce_error: float
-    bounce_errors: list
-    t1_error: float
-    closure_error: float
-    amplification: float
+    seconds: float | None = None
+    ratio_to_scipy: float | None = None
+    peak_mib: float | None = None
+    bounce_error: float | None = None
+    bounce_errors: list | None = None
+    t1_error: float | None = None
+    closure_error: float | None = None
+    amplification: float | None = None
+    refused: str | None = None
 
 
 def _scipy(T, photos, n_bounces):
@@ -122,7 +127,12 @@ def bench_case(scene_name: str, m: int, noise: float = 0.0, solvers=SOLVERS, bat
         if name == "regularised" and noise == 0:
             continue  # nothing to remove
         fn = _scipy if name == "scipy" else _solver(name, scene.layout, noise * np.abs(T).max())
-        seconds, (t1, bounces, residual) = _median_time(fn, repeats, noisy, photos, n_bounces)
+        try:
+            seconds, (t1, bounces, residual) = _median_time(fn, repeats, noisy, photos, n_bounces)
+        except TransportError as exc:
+            rows.append(BenchRow(scene=scene_name, m=scene.m, noise=noise, solver=name, batch=batch,
+                                 bounces=n_bounces, refused=str(exc)))
+            continue
         baseline = seconds if name == "scipy" else baseline
         errors = relative_errors(bounces, truth)
         closure = np.linalg.norm(photos - bounces.sum(axis=0) - residual) / np.linalg.norm(photos)
@@ -156,6 +166,8 @@ HEADER = (f"{'scene':>8} {'m':>5} {'noise':>7} {'solver':>7} {'seconds':>8} {'/s
 
 
 def format_row(r: BenchRow) -> str:
+    if r.refused:
+        return f"{r.scene:>8} {r.m:>5} {r.noise:>7.0e} {r.solver:>7} refused: {r.refused}"
     return (f"{r.scene:>8} {r.m:>5} {r.noise:>7.0e} {r.solver:>7} {r.seconds:>8.3f} {r.ratio_to_scipy:>6.2f} "
             f"{r.peak_mib:>6.0f} {r.bounce_error:>10.2e} {r.t1_error:>8.1e} {r.closure_error:>8.1e} "
             f"{r.amplification:>7.2f}")
@@ -176,6 +188,7 @@ def plot(rows: list[BenchRow], path) -> None:
     fig = Figure(figsize=(11, 4.5))
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(1, 2)
+    rows = [r for r in rows if not r.refused]
     solvers = list(dict.fromkeys(r.solver for r in rows))
     clean = [r for r in rows if r.noise == 0]
     for solver in solvers:

@@ -67,9 +67,9 @@ def load_operator(
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
 
-    ``solver``: auto, dense, mixed or blocks (:mod:`ilt.solvers`). ``noise``: sigma of
-    T relative to its unit columns; None measures it from T's negative entries when it
-    can. ``regularise``: denoise T first (:mod:`ilt.regularise`; needs the noise and the
+    ``solver``: auto, dense, mixed, blocks or series (:mod:`ilt.solvers`). ``noise``:
+    sigma of T relative to its unit columns (also the floor below which blocks and
+    series drop entries); None measures it from T's negative entries when it can. ``regularise``: denoise T first (:mod:`ilt.regularise`; needs the noise and the
     plan ``layout``). Returns the operator and a JSON-ready dict of diagnostics with
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint``.
     """
@@ -94,9 +94,10 @@ def load_operator(
     notes.update(fingerprint="sha256:" + key.split("-")[0])
     if name != "dense":
         log.info("building the %s operator (m = %d): %s", name, T.shape[0], reason)
-        op, why = build_operator(T, name, measured)
+        op, why = build_operator(T, name, measured, reason)
+        figures = {"series": op.figures} if op.solver == "series" else {}
         return op, {**operator_diagnostics(T, op), **notes, "solver": op.solver, "solver_reason": why,
-                    "rcond": op.rcond, "cached": False}
+                    "rcond": op.rcond, "cached": False, **figures}
     notes.update(solver="dense", solver_reason=reason)
     entry = cache_dir / "operators" / key if cache_dir is not None else None
     if entry is not None and (entry / "diagnostics.json").exists():

@@ -28,9 +28,11 @@ def _list(kind):
               help="Comma-separated scenes: m, box, textured, occluded.")
 @click.option("--noise", "noises", callback=_list(float),
               help="Comma-separated noise levels in T, relative to max |T| (default 0,1e-6,1e-4,1e-2).")
-@click.option("--solvers", callback=_list(str), default="scipy,dense,mixed,blocks,regularised", show_default=True,
+@click.option("--solvers", callback=_list(str), default="scipy,dense,mixed,blocks,series,regularised",
+              show_default=True,
               help="Comma-separated solvers; scipy (inv + products) is always timed as the baseline; "
-                   "regularised (denoised T, then dense) runs on noisy T only.")
+                   "regularised (denoised T, then dense) runs on noisy T only; a solver that refuses T "
+                   "(series on a dense T) gets a row saying why.")
 @click.option("--batch", type=click.IntRange(min=1), default=16, show_default=True, help="Photos decomposed at once.")
 @click.option("--bounces", "n_bounces", type=click.IntRange(min=1), default=8, show_default=True)
 @click.option("--repeats", type=click.IntRange(min=1), default=3, show_default=True, help="Timings per figure (median).")

@@ -20,13 +20,14 @@ write inverse transport as a series of forward ones):
 Cost: ``(colours + k) x iterations x nnz(S)`` multiply-adds for the build and k
 solves, memory ``nnz(S)``; no factorisation and no dense inverse.
 
-Limits, checked before solving: T must be sparse at the floor (few colours), and the
-series converges only when ``rho(B) < 1``. For ``T = (I - A)^-1 T1``, B is similar to
+Limits, checked before solving (refused with the figure): T must be sparse at the
+floor (few colours), and the series converges only when ``rho(B) < 1``; after the
+probing, :func:`_probe_error` estimates how far T1 can be off. For ``T = (I - A)^-1 T1``, B is similar to
 ``I - diag(G)^-1 G`` with ``G = (I - A)^-1``, and ``G - I`` has eigenvalues
 ``lambda / (1 - lambda)`` for A's ``lambda``: the series needs roughly
 ``Re lambda < 1/2`` (``diag(G) > 1`` helps a little), where the bounce series of A
-itself needs ``|lambda| < 1``. A banded scene with ``rho(A)`` = 0.3, 0.4, 0.5 gives
-``rho(B)`` = 0.39, 0.57, 0.81.
+itself needs ``|lambda| < 1``. The chain scene of tests/test_series.py gives
+``rho(B)`` = 0.11, 0.39, 0.82 for ``rho(A)`` = 0.1, 0.3, 0.5.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ log = logging.getLogger(__name__)
 SERIES_TOL = 1e-12
 #: spectral radius past which the series is slow enough to warn about
 RHO_WARN = 0.99
-#: probing with more colours than m / this is refused: T is dense at the floor
+#: probing with more colours than m / this (and 2) is refused: T is dense at the floor
 MAX_COLOUR_SHARE = 4
 #: a probing error (:func:`_probe_error`) this many times the floor (or tol) is warned about
 PROBE_WARN = 10
@@ -83,9 +84,8 @@ def sparse_unit_columns(T: np.ndarray, threshold: float = 0.0) -> tuple[sparse.c
 def count_nonzeros(T: np.ndarray, threshold: float = 0.0) -> int:
     """nnz of :func:`sparse_unit_columns` without building it (one pass over T)."""
     T, norms = prepare_isf(T)
-    inv_norms = 1.0 / norms
-    return sum(int(np.count_nonzero(np.abs(T[i0:i0 + 512] * inv_norms) > threshold))
-               for i0 in range(0, T.shape[0], 512))
+    floor = threshold * norms
+    return sum(int(np.count_nonzero(np.abs(T[i0:i0 + 512]) > floor)) for i0 in range(0, T.shape[0], 512))
 
 
 def greedy_colouring(S: sparse.spmatrix) -> np.ndarray:
@@ -266,7 +266,7 @@ def series_operator(T: np.ndarray, threshold: float = 0.0, tol: float = SERIES_T
     # Turan: a graph with E edges has a clique of m^2 / (m^2 - 2E) points, each needing
     # its own colour; refusing here spares building a dense S
     fewest = math.ceil(m * m / (m * m - nnz + m) - 1e-9)
-    if fewest > m / MAX_COLOUR_SHARE:
+    if fewest > _colour_limit(m):
         raise _dense(m, nnz, threshold, f"at least {fewest}")
     S, norms = sparse_unit_columns(T, threshold)
     d = S.diagonal()
@@ -277,7 +277,7 @@ def series_operator(T: np.ndarray, threshold: float = 0.0, tol: float = SERIES_T
                              "use --solver dense")
     colours = greedy_colouring(S)
     count = int(colours.max()) + 1
-    if count > m / MAX_COLOUR_SHARE:
+    if count > _colour_limit(m):
         raise _dense(m, nnz, threshold, str(count))
     d_inv = 1.0 / d
     rho, products = jacobi_radius(S, d_inv)
@@ -331,10 +331,14 @@ def _probe_error(S: sparse.csr_matrix, colours: np.ndarray, probes: np.ndarray, 
     return float(violation.max())
 
 
+def _colour_limit(m: int) -> float:
+    return max(2.0, m / MAX_COLOUR_SHARE)
+
+
 def _dense(m: int, nnz: int, threshold: float, colours: str) -> TransportError:
     return TransportError(f"series: T is dense at the noise floor {threshold:.2g} ({nnz / m:.0f} entries per "
                           f"column): probing T1 needs {colours} colours, more than m / {MAX_COLOUR_SHARE} = "
-                          f"{m / MAX_COLOUR_SHARE:.0f}; use --solver dense or give --noise")
+                          f"{_colour_limit(m):.0f}; use --solver dense or give --noise")
 
 
 def _inverse_one_norm(S: sparse.csr_matrix, d_inv: np.ndarray, tol: float, max_iterations: int) -> tuple[float, int]:

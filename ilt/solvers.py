@@ -56,10 +56,12 @@ SERIES_MIN_M = 2048
 SERIES_SPARSITY = 20
 #: probing needing at most this many colours
 SERIES_MAX_COLOURS = 64
-#: the weight of a sparse flop against a dense one. Measured on 2 busy cores: scipy's
-#: single-threaded sparse products ~2 GFlop/s, the dense build (getrf, two trtri, the
-#: diagonal) ~2.3 GFlop/s effective; the weight leaves room for a BLAS with more cores
-SERIES_FLOP_PENALTY = 4
+#: the weight of a sparse flop against a dense one: scipy's CSR products run
+#: single-threaded at 2-2.5 GFlop/s, ``dense`` (build and solves) at 36-54 GFlop/s on
+#: the idle 2-core machine of docs/accuracy.md (m = 2028-4107); more cores favour dense
+SERIES_FLOP_PENALTY = 20
+#: "clearly wins": the weighted flops must be at most 1 / SERIES_MARGIN of dense's
+SERIES_MARGIN = 2
 #: solved columns counted beside the build (16 photos x 8 bounces)
 SERIES_USE_COLUMNS = 128
 
@@ -211,8 +213,8 @@ def _series_wins(T: np.ndarray, threshold: float) -> str | None:
     """Why ``series`` clearly beats ``dense`` on T (a sentence with the figures), or
     None: T must be sparse at the floor, need few colours, have a convergent series,
     and the build plus ``SERIES_USE_COLUMNS`` solves, ``2 nnz x iterations x (colours
-    + columns)`` flops weighted by ``SERIES_FLOP_PENALTY``, must cost less than the
-    dense build and solves, ``4/3 m^3 + 2 m^2 x columns``."""
+    + columns)`` flops weighted by ``SERIES_FLOP_PENALTY``, must cost at most
+    ``1 / SERIES_MARGIN`` of the dense build and solves, ``4/3 m^3 + 2 m^2 x columns``."""
     m = T.shape[0]
     nnz = count_nonzeros(T, threshold)
     if nnz > m * m / SERIES_SPARSITY:
@@ -228,7 +230,7 @@ def _series_wins(T: np.ndarray, threshold: float) -> str | None:
     iterations = iterations_needed(rho)
     share = (2 * nnz * iterations * (colours + SERIES_USE_COLUMNS)
              / (4 / 3 * m**3 + 2 * m**2 * SERIES_USE_COLUMNS))
-    if SERIES_FLOP_PENALTY * share >= 1:
+    if SERIES_FLOP_PENALTY * SERIES_MARGIN * share > 1:
         return None
     return (f"T is sparse at the noise floor {threshold:.2g} ({nnz / m:.0f} entries per column), probing needs "
             f"{colours} colours and the series' spectral radius is {rho:.2f} (~{iterations} iterations): "

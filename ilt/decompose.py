@@ -69,9 +69,11 @@ def load_operator(
 
     ``solver``: auto, dense, mixed, blocks or series (:mod:`ilt.solvers`). ``noise``:
     sigma of T relative to its unit columns (also the floor below which blocks and
-    series drop entries); None measures it from T's negative entries when it can. ``regularise``: denoise T first (:mod:`ilt.regularise`; needs the noise and the
+    series drop entries); None measures it from T's negative entries when it can.
+    ``regularise``: denoise T first (:mod:`ilt.regularise`; needs the noise and the
     plan ``layout``). Returns the operator and a JSON-ready dict of diagnostics with
-    ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint``.
+    ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
+    ``series`` figures of that solver, build included).
     """
     key = fingerprint_array(np.asarray(T)).split(":", 1)[1]
     measured = estimate_noise(T) if noise is None else noise

@@ -76,7 +76,7 @@ def throughput(m: int, width: int, height: int, workers: int, repeats: int, prof
             import pstats
 
             cProfile.runctx("stages(1)", globals(), {"stages": stages}, str(tmp / "profile"))
-            pstats.Stats(str(tmp / "profile")).sort_stats("tottime").print_stats(15)
+            pstats.Stats(str(tmp / "profile")).sort_stats("cumtime").print_stats(40)
             return
         read_all()  # warm the page cache
         # the three runs back to back in every repeat, so load from other users of the

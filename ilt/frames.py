@@ -23,7 +23,7 @@ import os
 import re
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from ilt.imageio import ImageError, one_thread_per_process, read_exr
+from ilt.imageio import ImageError, one_thread, read_exr
 from ilt.manifest import MANIFEST
 
 _BEAM_NAME = re.compile(r"^beam-(\d+)\.exr$", re.IGNORECASE)
@@ -230,16 +230,21 @@ def chunks(items: Sequence, size: int) -> list[Sequence]:
 def beam_executor(executor: Executor | None, workers: int | None) -> Iterator[Executor | None]:
     """The executor to use: the caller's, else a process pool of ``workers`` (None: all cores).
 
-    ``workers == 1`` runs in this process (yields None).
+    ``workers == 1`` runs in this process (yields None) on one core: OpenImageIO and
+    OpenCV are held to one thread meanwhile, as in each of N worker processes, so that
+    ``-j N`` means N cores.
     """
     if executor is not None:
         yield executor
         return
     workers = workers or os.cpu_count() or 1
     if workers == 1:
-        yield None
+        with one_thread():
+            yield None
         return
-    with ProcessPoolExecutor(max_workers=workers, initializer=one_thread_per_process) as pool:
+    from ilt.workers import process_pool  # (imports the stage modules: not at module level)
+
+    with process_pool(workers) as pool:
         yield pool
 
 

@@ -36,10 +36,29 @@ def is_lossless(compression: str) -> bool:
 
 
 def one_thread_per_process() -> None:
-    """Worker initializer: one OpenImageIO thread in this process, so that N worker
-    processes use N cores (by default each would run a thread per core)."""
+    """Worker initializer: one OpenImageIO (and OpenCV) thread in this process, so that
+    N worker processes use N cores (by default each would run a thread per core)."""
+    import cv2
+
     oiio.attribute("threads", 1)
     oiio.attribute("exr_threads", 1)
+    cv2.setNumThreads(1)
+
+
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """`one_thread_per_process` for the duration of a block, then the settings before:
+    a stage run with one worker in this process uses one core, like each of N workers."""
+    import cv2
+
+    before = (oiio.get_int_attribute("threads"), oiio.get_int_attribute("exr_threads"), cv2.getNumThreads())
+    one_thread_per_process()
+    try:
+        yield
+    finally:
+        oiio.attribute("threads", before[0])
+        oiio.attribute("exr_threads", before[1])
+        cv2.setNumThreads(before[2])
 
 # Header attributes ilt keeps for itself: the caller's channel order (the EXR
 # format sorts channels by name and OIIO moves R, G, B, A first on reading) and
@@ -185,7 +204,7 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
         stored_order = json.loads(attributes.pop(_CHANNELS_ATTR, "null"))
     except (KeyError, TypeError, json.JSONDecodeError) as exc:
         raise ImageError(f"{path}: corrupt ilt header attribute: {exc!r}") from exc
-    if stored_order is not None and sorted(stored_order) == sorted(names):
+    if stored_order is not None and stored_order != names and sorted(stored_order) == sorted(names):
         pixels = pixels[:, :, [names.index(n) for n in stored_order]]
         names = stored_order
     attributes["channels"] = names

@@ -11,7 +11,6 @@ import concurrent.futures as cf
 import hashlib
 import json
 import logging
-import multiprocessing as mp
 import os
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -23,8 +22,9 @@ from ilt.hdr.bracket import Bracket, FrameRecord, list_beams, logged_fingerprint
 from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
 from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
 from ilt.hdr.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
-from ilt.imageio import one_thread_per_process, write_exr
+from ilt.imageio import one_thread, write_exr
 from ilt.manifest import atomic_path, staged_directory, write_json, write_manifest
+from ilt.workers import process_pool
 
 log = logging.getLogger(__name__)
 
@@ -262,9 +262,10 @@ def merge_capture(
 
 def _run_beams(beams, out_dir, options, executor, workers, logged) -> list[dict]:
     if executor is None and workers <= 1:
-        return [merge_beam(b, out_dir, options, logged.get(b.name)) for b in beams]
+        with one_thread():  # one core, as each of N workers
+            return [merge_beam(b, out_dir, options, logged.get(b.name)) for b in beams]
     own = executor is None
-    pool = process_pool(workers) if own else executor
+    pool = process_pool(workers) if own else executor  # ilt.workers: forkserver, one thread each
     try:
         futures = [pool.submit(merge_beam, b, out_dir, options, logged.get(b.name)) for b in beams]
         try:
@@ -277,19 +278,6 @@ def _run_beams(beams, out_dir, options, executor, workers, logged) -> list[dict]
     finally:
         if own:
             pool.shutdown(wait=True, cancel_futures=True)
-
-
-def process_pool(workers: int) -> cf.ProcessPoolExecutor:
-    """A pool of ``workers`` processes for `merge_capture`.
-
-    forkserver, not fork: LibRaw's OpenMP threads can deadlock a forked child. The fork
-    server imports this module, rawpy, exifread and OpenCV once and forks every worker
-    from it, so a worker starts in milliseconds instead of re-importing for a second.
-    Each worker writes EXR with one OpenImageIO thread: the workers fill the cores.
-    """
-    context = mp.get_context("forkserver")
-    context.set_forkserver_preload([__name__, "rawpy", "exifread", "cv2"])
-    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=one_thread_per_process)
 
 
 def merge_files(paths: list[str | os.PathLike], output: str | os.PathLike,

@@ -5,8 +5,9 @@ benchmark times, as the median of repeats,
 
 - ``scipy``: the bare baseline, ``scipy.linalg.inv(T)`` (getrf + getri), ``C1 = T1 T^-1``
   formed, then the bounce recursion with matrix products;
-- each ilt solver (``dense``, ``mixed``, ``blocks``, ``series``; see :mod:`ilt.solvers`):
-  build the operator and split a batch of photos into N bounces; for noisy T also
+- each ilt solver (``dense``, ``mixed``, ``blocks``, ``series``, ``compressed``; see
+  :mod:`ilt.solvers`): build the operator and split a batch of photos into N bounces
+  (``compressed`` to the true sigma, on the scene's grid order); for noisy T also
   ``regularised`` (:mod:`ilt.regularise`, with the true sigma, then ``dense``). A
   solver that refuses T (``series`` on a dense T) gets a row saying why, no figures;
 
@@ -26,6 +27,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import scipy.linalg
 
+from ilt.compressed import grid_points
 from ilt.evaluate import relative_errors
 from ilt.regularise import regularise_isf
 from ilt.sim import ILLUMINATIONS, make_scene
@@ -34,7 +36,7 @@ from ilt.transport import TransportError, bounce_images
 
 QUICK_SIZES = (256, 512, 1024)
 FULL_SIZES = (256, 512, 1024, 2048, 4096)
-SOLVERS = ("scipy", "dense", "mixed", "blocks", "series", "regularised")
+SOLVERS = ("scipy", "dense", "mixed", "blocks", "series", "compressed", "regularised")
 
 
 @dataclass
@@ -75,7 +77,10 @@ def _solver(name, layout=None, noise=0.0):
     def run(T, photos, n_bounces):
         if name == "regularised":  # denoise T (discrepancy principle), then dense
             T = regularise_isf(T, layout, noise)[0]
-        op, _ = build_operator(T, "dense" if name == "regularised" else name)
+        if name == "compressed":  # to the noise floor, as `ilt decompose --noise` would
+            op, _ = build_operator(T, name, noise, points=grid_points(layout, T.shape[0]))
+        else:
+            op, _ = build_operator(T, "dense" if name == "regularised" else name)
         dec = bounce_images(op, photos, n_bounces)
         return op.t1, dec.bounces, dec.residual
     return run
@@ -161,14 +166,14 @@ def run_bench(sizes, scenes=("box",), noises=(0.0,), solvers=SOLVERS, batch: int
     return rows
 
 
-HEADER = (f"{'scene':>8} {'m':>5} {'noise':>7} {'solver':>7} {'seconds':>8} {'/scipy':>6} {'MiB':>6} "
+HEADER = (f"{'scene':>8} {'m':>5} {'noise':>7} {'solver':>11} {'seconds':>8} {'/scipy':>6} {'MiB':>6} "
           f"{'bounce err':>10} {'T1 err':>8} {'closure':>8} {'amplif':>7}")
 
 
 def format_row(r: BenchRow) -> str:
     if r.refused:
-        return f"{r.scene:>8} {r.m:>5} {r.noise:>7.0e} {r.solver:>7} refused: {r.refused}"
-    return (f"{r.scene:>8} {r.m:>5} {r.noise:>7.0e} {r.solver:>7} {r.seconds:>8.3f} {r.ratio_to_scipy:>6.2f} "
+        return f"{r.scene:>8} {r.m:>5} {r.noise:>7.0e} {r.solver:>11} refused: {r.refused}"
+    return (f"{r.scene:>8} {r.m:>5} {r.noise:>7.0e} {r.solver:>11} {r.seconds:>8.3f} {r.ratio_to_scipy:>6.2f} "
             f"{r.peak_mib:>6.0f} {r.bounce_error:>10.2e} {r.t1_error:>8.1e} {r.closure_error:>8.1e} "
             f"{r.amplification:>7.2f}")
 

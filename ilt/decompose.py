@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ilt.cells import integrate, mosaic
+from ilt.compressed import grid_points
 from ilt.frames import FrameError, PixelMapping
 from ilt.imageio import ImageError, read_exr, write_exr
 from ilt.isf import ISF
@@ -63,17 +64,20 @@ def load_operator(
     noise: float | None = None,
     layout: tuple[int, int] | None = None,
     regularise: bool = False,
+    beams: np.ndarray | None = None,
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
 
-    ``solver``: auto, dense, mixed, blocks or series (:mod:`ilt.solvers`). ``noise``:
-    sigma of T relative to its unit columns (also the floor below which blocks and
-    series drop entries); None measures it from T's negative entries when it can.
+    ``solver``: auto, dense, mixed, blocks, series or compressed (:mod:`ilt.solvers`).
+    ``noise``: sigma of T relative to its unit columns (also the floor below which
+    blocks and series drop entries, and compressed's tolerance); None measures it from
+    T's negative entries when it can. ``layout`` and ``beams`` (plan beam of each row)
+    place the samples on the plan's grid, which compressed orders its tree by.
     ``regularise``: denoise T first (:mod:`ilt.regularise`; needs the noise and the
     plan ``layout``). Returns the operator and a JSON-ready dict of diagnostics with
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
-    ``series`` figures of that solver, build included).
+    ``series`` or ``compressed`` figures of those solvers, build included).
     """
     key = fingerprint_array(np.asarray(T)).split(":", 1)[1]
     measured = estimate_noise(T) if noise is None else noise
@@ -96,8 +100,8 @@ def load_operator(
     notes.update(fingerprint="sha256:" + key.split("-")[0])
     if name != "dense":
         log.info("building the %s operator (m = %d): %s", name, T.shape[0], reason)
-        op, why = build_operator(T, name, measured, reason)
-        figures = {"series": op.figures} if op.solver == "series" else {}
+        op, why = build_operator(T, name, measured, reason, points=grid_points(layout, T.shape[0], beams))
+        figures = {op.solver: op.figures} if op.solver in ("series", "compressed") else {}
         return op, {**operator_diagnostics(T, op), **notes, "solver": op.solver, "solver_reason": why,
                     "rcond": op.rcond, "cached": False, **figures}
     notes.update(solver="dense", solver_reason=reason)
@@ -276,7 +280,7 @@ def decompose(
         if (out / stem).exists() and not force:
             raise InputError(f"{out / stem} exists; use --force to replace it")
     try:
-        op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise)
+        op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise, isf.beams)
     except TransportError as exc:
         raise TransportError(f"{isf.path}: {exc}") from None
     for w in op_diag["warnings"]:

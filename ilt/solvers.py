@@ -12,7 +12,11 @@
 - ``series``: products with T sparsified at the noise floor only (Jacobi-scaled
   Neumann series for solves, probing for ``T1``; :mod:`ilt.series`): cost
   ``(colours + k) x iterations x nnz``, for locally coupled scenes. Refuses, naming
-  the figure, when T is dense at the floor or the series diverges.
+  the figure, when T is dense at the floor or the series diverges;
+- ``compressed``: T in HODLR form (off-diagonal blocks low-rank to the noise floor)
+  with Woodbury solves (:mod:`ilt.compressed`): compression ``~4 m^2 r`` flops per
+  level, storage and solves ``O(m r log m)``; T can be a memory map. Refuses, naming
+  the residual, when a solve from the compressed form does not reproduce T.
 
 ``auto`` picks by structure, size and noise and says why (:func:`choose_solver`).
 """
@@ -20,10 +24,12 @@
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ilt.compressed import compressed_operator
 from ilt.series import (
     count_nonzeros,
     greedy_colouring,
@@ -44,7 +50,7 @@ from ilt.transport import (
 
 log = logging.getLogger(__name__)
 
-SOLVERS = ("auto", "dense", "mixed", "blocks", "series")
+SOLVERS = ("auto", "dense", "mixed", "blocks", "series", "compressed")
 #: relative noise in T above which float32 factors lose nothing that matters
 MIXED_NOISE = 1e-5
 #: below this size the float64 LU is cheap enough to always use
@@ -64,6 +70,12 @@ SERIES_FLOP_PENALTY = 20
 SERIES_MARGIN = 2
 #: solved columns counted beside the build (16 photos x 8 bounces)
 SERIES_USE_COLUMNS = 128
+# auto picks ``compressed`` where it was measured to win (docs/numerics.md,
+# "compressed"): the box scene's ranks at the noise floor grow slower than m
+#: from this size
+COMPRESSED_MIN_M = 8192
+#: at a noise floor (relative to T's unit columns) of at least this
+COMPRESSED_MIN_NOISE = 1e-5
 
 
 @dataclass(frozen=True)
@@ -203,6 +215,14 @@ def choose_solver(T: np.ndarray, noise: float | None) -> tuple[str, str]:
         why = _series_wins(T, noise or 0.0)
         if why:
             return "series", why
+    dense_bytes = 2 * 8 * m * m  # T's float64 copy and its factors
+    if dense_bytes > available_memory():
+        return "compressed", (f"dense needs {dense_bytes / 2**20:.0f} MiB (two m x m float64 arrays, m = {m}), "
+                              f"more than the {available_memory() / 2**20:.0f} MiB available")
+    if noise is not None and noise >= COMPRESSED_MIN_NOISE and m >= COMPRESSED_MIN_M:
+        return "compressed", (f"m = {m} >= {COMPRESSED_MIN_M} and noise {noise:.2g} >= {COMPRESSED_MIN_NOISE:.0e}: "
+                              "T's off-diagonal blocks are low-rank to the noise floor, so compressing beats "
+                              "a dense LU")
     if noise is not None and noise >= MIXED_NOISE and m >= MIXED_MIN_M:
         return "mixed", (f"noise {noise:.2g} in T is far above float32 rounding and m = {m} >= {MIXED_MIN_M}: "
                          "float32 factors halve time and memory")
@@ -237,12 +257,15 @@ def _series_wins(T: np.ndarray, threshold: float) -> str | None:
             f"the build and {SERIES_USE_COLUMNS} solves take {share:.2g} of the flops of dense (m = {m})")
 
 
-def build_operator(T: np.ndarray, solver: str = "auto", noise: float | None = None, reason: str | None = None):
+def build_operator(T: np.ndarray, solver: str = "auto", noise: float | None = None, reason: str | None = None,
+                   points: np.ndarray | None = None):
     """``C1`` with the chosen back-end. Returns ``(operator, reason)``.
 
     ``noise``: the floor (relative to T's unit columns) below which ``blocks`` and
-    ``series`` treat entries as zero. ``reason``: why ``solver`` was chosen, when the
-    caller ran :func:`choose_solver` itself (default: "asked for <solver>").
+    ``series`` treat entries as zero, and the tolerance per entry of ``compressed``.
+    ``reason``: why ``solver`` was chosen, when the caller ran :func:`choose_solver`
+    itself (default: "asked for <solver>"). ``points``: (m, d) sample positions that
+    ``compressed`` orders its tree by (None: index order).
     """
     if solver not in SOLVERS:
         raise TransportError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
@@ -253,6 +276,9 @@ def build_operator(T: np.ndarray, solver: str = "auto", noise: float | None = No
         return block_operator(T, threshold=noise or 0.0), reason
     if solver == "series":
         return series_operator(T, threshold=noise or 0.0), reason
+    if solver == "compressed":
+        op = compressed_operator(T, tol=noise or None, points=points)
+        return op, f"{reason}; {op.describe()}"
     if solver == "mixed":
         T, norms = prepare_isf(T)
         row_sums = np.zeros(T.shape[0])
@@ -267,6 +293,18 @@ def build_operator(T: np.ndarray, solver: str = "auto", noise: float | None = No
             log.warning("mixed precision fails on T (%s); using dense", exc)
             reason += f"; float32 failed ({exc}), fell back to dense"
     return cancellation_operator(T), reason
+
+
+def available_memory() -> int:
+    """Bytes of memory the system has available now (Linux: MemAvailable), else all of it."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 def estimate_noise(T: np.ndarray) -> float | None:

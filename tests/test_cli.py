@@ -186,7 +186,8 @@ def test_bench_writes_figures_with_errors_against_truth(tmp_path):
                  "-o", tmp_path / "b", "--json")
     rows = json.loads(result.stdout)
     assert {(r["m"], r["noise"], r["solver"]) for r in rows} == {
-        (m, n, s) for m in (48, 108) for n in (0.0, 1e-4) for s in ("scipy", "dense", "mixed", "blocks", "series")
+        (m, n, s) for m in (48, 108) for n in (0.0, 1e-4) for s in ("scipy", "dense", "mixed", "blocks", "series",
+                                                               "compressed")
     } | {(m, 1e-4, "regularised") for m in (48, 108)}
     for r in rows:
         if r["solver"] == "series":  # the box's points all exchange light: T is dense, series refuses

@@ -28,7 +28,7 @@ def _list(kind):
               help="Comma-separated scenes: m, box, textured, occluded.")
 @click.option("--noise", "noises", callback=_list(float),
               help="Comma-separated noise levels in T, relative to max |T| (default 0,1e-6,1e-4,1e-2).")
-@click.option("--solvers", callback=_list(str), default="scipy,dense,mixed,blocks,series,regularised",
+@click.option("--solvers", callback=_list(str), default="scipy,dense,mixed,blocks,series,compressed,regularised",
               show_default=True,
               help="Comma-separated solvers; scipy (inv + products) is always timed as the baseline; "
                    "regularised (denoised T, then dense) runs on noisy T only; a solver that refuses T "

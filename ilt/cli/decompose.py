@@ -28,14 +28,16 @@ from ilt.cli.options import (
               help="Where factorised operators are kept between runs "
                    "(default $ILT_CACHE_DIR, else $XDG_CACHE_HOME/ilt).")
 @click.option("--no-cache", is_flag=True, help="Do not read or write the operator cache.")
-@click.option("--solver", type=click.Choice(["auto", "dense", "mixed", "blocks", "series"]), default="auto",
-              show_default=True,
+@click.option("--solver", type=click.Choice(["auto", "dense", "mixed", "blocks", "series", "compressed"]),
+              default="auto", show_default=True,
               help="How C1 is built: dense LU (reference), mixed float32/float64, blocks for independent "
                    "groups of points, series (products with T sparse at the noise floor, for locally coupled "
-                   "scenes); auto picks by structure, size and noise and says why.")
+                   "scenes), compressed (T low-rank off its diagonal to the noise floor, for large m); auto "
+                   "picks by structure, size and noise and says why.")
 @click.option("--noise", type=click.FloatRange(min=0), default=None,
               help="Noise sigma of T relative to its unit columns (default: measured from T's negative "
-                   "entries when it has some); blocks and series treat entries below it as zero.")
+                   "entries when it has some); blocks and series treat entries below it as zero, "
+                   "compressed compresses T to it.")
 @click.option("--regularise", is_flag=True,
               help="Denoise T before inverting it: smooth its indirect part along pixels and beams, as much "
                    "as the noise allows (discrepancy principle); needs the noise level and a full grid plan.")

@@ -1,0 +1,194 @@
+"""The ``compressed`` (HODLR) back-end against the dense solver and the simulator's truth.
+
+Scenes are small, so leaves are small too (16-64 points) to give trees of 2-4 levels.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ilt import compressed, solvers
+from ilt.bench import bench_case, scene_batch
+from ilt.cli import cli
+from ilt.compressed import compressed_operator, grid_points, spatial_order
+from ilt.decompose import load_operator
+from ilt.evaluate import relative_errors
+from ilt.sim import make_scene
+from ilt.solvers import build_operator, choose_solver
+from ilt.transport import TransportError, bounce_images, cancellation_operator
+
+
+def box(beams=432, noise=0.0, seed=1):
+    """The box scene's T (unit columns), with Gaussian noise of ``noise`` x max |T|."""
+    scene = make_scene("box", beams=beams)
+    T, scale = scene.isf()
+    if noise:
+        T = T + noise * np.abs(T).max() * np.random.default_rng(seed).normal(size=T.shape)
+    return scene, T, scale
+
+
+def total_rank(op):
+    return sum(sum(r) for r in op.root.ranks_by_level().values())
+
+
+@pytest.mark.parametrize("name, beams, leaf", [("box", 432, 48), ("m", 256, 32), ("occluded", 256, 32)])
+def test_tiny_tolerance_matches_dense(name, beams, leaf):
+    scene = make_scene(name, beams=beams)
+    T, _ = scene.isf()
+    points = grid_points(scene.layout, scene.m)
+    op = compressed_operator(T, tol=1e-14, points=points, leaf=leaf)
+    dense = cancellation_operator(T)
+    assert len(op.root.ranks_by_level()) >= 3  # a real tree, not one leaf
+    assert np.max(np.abs(op.t1 / dense.t1 - 1)) < 1e-11
+    L = np.random.default_rng(2).uniform(size=(scene.m, 3))
+    assert np.linalg.norm(op.apply(L) - dense.apply(L)) < 1e-10 * np.linalg.norm(dense.apply(L))
+    ours, theirs = bounce_images(op, L, 6).bounces, bounce_images(dense, L, 6).bounces
+    assert relative_errors(ours, theirs).max() < 1e-9
+    # the condition estimate comes from solves with the compressed form
+    assert op.rcond == pytest.approx(dense.rcond, rel=0.2)
+
+
+def test_diagonal_of_the_inverse_is_that_of_the_solves():
+    """Woodbury's diagonal (T1) against the diagonal of H^-1 formed column by column."""
+    _, T, _ = box(192)
+    op = compressed_operator(T, tol=1e-6, leaf=16)
+    inverse = op.solve(np.eye(op.m))
+    assert np.allclose(1.0 / op.t1_unit, np.diag(inverse), rtol=1e-12, atol=0)
+    # and the transposed solve is the transpose
+    assert np.allclose(op.solve(np.eye(op.m), trans=True), inverse.T, rtol=0, atol=1e-12 * np.abs(inverse).max())
+
+
+def test_noise_floor_tolerance_keeps_the_accuracy_of_dense():
+    """Compressing a noisy T to its noise sigma costs nothing the data had: the bounce
+    and T1 errors against the simulator's truth stay within 2x (measured: 1.00x) of
+    dense on the same noisy T, at a fraction of the rank a tiny tolerance needs."""
+    sigma = 1e-4
+    scene, T, scale = box(432, noise=sigma)
+    photos, truth = scene_batch(scene, 4, 4)
+    points = grid_points(scene.layout, scene.m)
+    floor = sigma * np.abs(T).max()
+    op = compressed_operator(T, tol=floor, points=points, leaf=48)
+    dense = cancellation_operator(T)
+    ours = relative_errors(bounce_images(op, photos, 4).bounces, truth).max()
+    theirs = relative_errors(bounce_images(dense, photos, 4).bounces, truth).max()
+    assert theirs > 1e-4 and ours < 2 * theirs
+    t1_true = scene.direct / scale
+    assert np.max(np.abs(op.t1 - t1_true) / t1_true) < 2 * np.max(np.abs(dense.t1 - t1_true) / t1_true)
+    exact = compressed_operator(T, tol=1e-12, points=points, leaf=48)
+    assert total_rank(op) < total_rank(exact) / 2 and op.memory < exact.memory
+    assert op.figures["tol"] == floor and op.figures["tol_source"] == "the noise floor given"
+
+
+def test_ranks_fall_as_the_tolerance_rises():
+    _, T, _ = box(432)
+    ranks = [compressed_operator(T, tol=tol, leaf=48).root.ranks_by_level() for tol in (1e-12, 1e-9, 1e-6, 1e-3)]
+    for level in ranks[0]:
+        per_level = [sum(r.get(level, [0])) for r in ranks]
+        assert per_level == sorted(per_level, reverse=True), (level, per_level)
+    totals = [sum(map(sum, r.values())) for r in ranks]
+    assert totals == sorted(set(totals), reverse=True)  # strictly
+
+
+def test_low_rank_reaches_the_tolerance():
+    """Each block's dropped tail is at most atol in the 2-norm (checked by SVD)."""
+    _, T, _ = box(432)
+    block = T[:216, 216:]
+    s = np.linalg.svd(block, compute_uv=False)
+    for atol in (1e-9, 1e-5, 1e-2):
+        u, v = compressed.low_rank(block, atol, np.random.default_rng(0))
+        assert np.linalg.norm(block - u @ v.T, 2) <= atol * 1.01
+        assert u.shape[1] == np.sum(s > atol)  # no more terms than the SVD needs
+
+
+def test_spatial_order():
+    grid = grid_points((4, 8), 32)
+    order = spatial_order(grid)
+    assert sorted(order) == list(range(32))
+    # halves and quarters are compact 4 x 4 and 2 x 4 (or 4 x 2) patches, not scanline strips
+    for part in np.split(order, 4):
+        span = np.ptp(grid[part], axis=0)
+        assert span.max() <= 3 and span.sum() <= 4
+    line = grid_points((1, 16), 16)
+    assert list(spatial_order(line)) == list(range(16))
+    assert grid_points((2, 3), 7) is None and grid_points(None, 4) is None
+    assert np.array_equal(grid_points((2, 3), 2, beams=np.array([1, 5])), [[0, 1], [1, 2]])
+
+
+def test_refusals_are_one_line_with_the_figure(monkeypatch):
+    _, T, _ = box(192)
+    with pytest.raises(TransportError, match=r"tolerance 2 is at or above the largest entry of T"):
+        compressed_operator(T, tol=2.0)
+    with pytest.raises(TransportError, match="must be a positive number"):
+        build_operator(T, "compressed", noise=-1e-3)
+    with pytest.raises(TransportError, match="square"):
+        compressed_operator(T[:, :-1])
+    with pytest.raises(TransportError, match=r"sample positions of shape \(3, 2\)"):
+        compressed_operator(T, points=np.zeros((3, 2)))
+    # a compression that drops what it should keep is caught by the residual against T
+    monkeypatch.setattr(compressed, "low_rank", lambda block, atol, rng: (np.zeros((block.shape[0], 0)),
+                                                                          np.zeros((block.shape[1], 0))))
+    with pytest.raises(TransportError) as err:
+        compressed_operator(T, tol=1e-10, leaf=32)
+    message = str(err.value)
+    assert "\n" not in message and "residual ||T x - b|| / ||x|| =" in message and "times what tol" in message
+
+
+def test_auto_picks_compressed_for_large_m_at_a_noise_floor(monkeypatch):
+    _, T, _ = box(432, noise=1e-3)
+    monkeypatch.setattr(solvers, "COMPRESSED_MIN_M", 400)
+    name, reason = choose_solver(T, 1e-3)
+    assert name == "compressed" and "noise" in reason and "m = 432" in reason
+    assert choose_solver(T, None)[0] != "compressed"  # near-exact ranks do not pay
+    assert choose_solver(T, solvers.COMPRESSED_MIN_NOISE / 10)[0] != "compressed"
+    # memory: dense needs two m x m float64 arrays
+    monkeypatch.setattr(solvers, "available_memory", lambda: 16 * 432**2 - 1)
+    name, reason = choose_solver(T, None)
+    assert name == "compressed" and "MiB" in reason
+
+
+def test_load_operator_reports_the_figures(monkeypatch):
+    scene, T, _ = box(432, noise=1e-5)
+    monkeypatch.setattr(compressed, "LEAF", 48)
+    op, diagnostics = load_operator(T, None, "compressed", 1e-5, scene.layout)
+    assert diagnostics["solver"] == "compressed" and op.solver == "compressed"
+    figures = diagnostics["compressed"]
+    assert figures["tol"] == 1e-5 and figures["ordering"].startswith("points ordered by a k-d tree")
+    assert figures["memory_bytes"] == op.memory and figures["dense_bytes"] == 8 * 432**2
+    assert len(figures["ranks_by_level"]) == 4  # 432 -> 216 -> 108 -> 54 -> leaves of 27
+    assert "tol 1e-05" in diagnostics["solver_reason"]
+    assert diagnostics["spectral_radius_A"] < 1
+    _, diagnostics = load_operator(T, None, "compressed", 1e-5)
+    assert diagnostics["compressed"]["ordering"] == "index order (no positions given)"
+
+
+def test_decompose_cli_with_compressed(tmp_path, monkeypatch):
+    monkeypatch.setattr(compressed, "LEAF", 48)
+    scene, T, _ = box(432)
+    isf = tmp_path / "isf"
+    isf.mkdir()
+    np.save(isf / "T.npy", T)
+    L = np.random.default_rng(3).uniform(size=scene.m)
+    np.save(tmp_path / "photo.npy", L)
+    result = CliRunner().invoke(cli, ["decompose", "--isf", str(isf), str(tmp_path / "photo.npy"), "-o",
+                                      str(tmp_path / "out"), "--no-cache", "--solver", "compressed", "--noise",
+                                      "1e-9", "--bounces", "3", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)[0]
+    assert summary["operators"]["solver"] == "compressed"
+    assert summary["operators"]["compressed"]["tol"] == 1e-9
+    bounces = np.load(tmp_path / "out" / "photo" / "bounces.npy")
+    dense = bounce_images(cancellation_operator(T), L, 3).bounces
+    assert relative_errors(bounces, dense).max() < 1e-6
+    # a tolerance above every entry of T: one line naming it, nothing written
+    result = CliRunner().invoke(cli, ["decompose", "--isf", str(isf), str(tmp_path / "photo.npy"), "-o",
+                                      str(tmp_path / "bad"), "--no-cache", "--solver", "compressed", "--noise", "5"])
+    assert result.exit_code == 1 and "tolerance 5 is at or above" in result.output
+    assert not (tmp_path / "bad").exists()
+
+
+def test_bench_sweeps_compressed():
+    rows = bench_case("box", 192, 1e-4, solvers=("dense", "compressed"), batch=2, n_bounces=3, repeats=1)
+    assert [r.solver for r in rows] == ["scipy", "dense", "compressed"]
+    assert rows[2].refused is None and rows[2].bounce_error < 2 * rows[1].bounce_error

@@ -70,39 +70,43 @@ def low_rank(block: np.ndarray, atol: float, rng: np.random.Generator, step: int
     float64.
 
     Adaptive randomised range finder (Halko, Martinsson & Tropp, SIAM Review 2011,
-    Alg. 4.2, one power iteration per pass of ``step`` columns). It stops when
+    Alg. 4.2, one power iteration per pass of ``step`` columns, on the block less its
+    captured range). It stops when
 
     - the a-posteriori bound ``10 sqrt(2/pi) max_i ||(I - Q Q^T) B w_i||`` over 8 probes
       is below ``atol`` (the tail is below the tolerance: exact T), or
-    - a pass added no direction whose singular value in ``Q^T B`` is above ``atol``
-      (the spectrum left is below the tolerance: what a noisy block's range finder
-      reaches once only noise is left, where the bound never passes).
+    - the directions a pass added carry at most ``atol`` of the block,
+      ``||Y^T B||_2 <= atol``: after a power iteration they are the top of what is
+      left, so the rest lies below the tolerance. A noisy block's range finder
+      reaches this once only noise is left, where the bound never passes (the
+      noise's own singular values are below the edge ``atol`` is set to).
     """
     p, q = block.shape
     limit = min(p, q)
     basis, projected = np.zeros((p, 0)), np.zeros((0, q))  # Q and Q^T B
     bound = 10 * np.sqrt(2 / np.pi)
-    s = vt = u = None
-    kept = 0
     while basis.shape[1] < limit:
-        y = np.linalg.qr(block @ rng.standard_normal((q, min(step, limit - basis.shape[1]))))[0]
-        y = block @ np.linalg.qr(block.T @ y)[0]  # one power iteration
+        # one power iteration on the part of the block the basis misses: projecting
+        # before each normalisation keeps directions far below the largest singular
+        # value (squared by the iteration) above rounding
+        y = block @ rng.standard_normal((q, min(step, limit - basis.shape[1])))
+        y = np.linalg.qr(y - basis @ (basis.T @ y))[0]
+        y = block @ np.linalg.qr(block.T @ y)[0]
         y -= basis @ (basis.T @ y)
         # Householder QR of the whole basis keeps it orthonormal even when the new
         # directions are only rounding noise (Gram-Schmidt, even twice, does not); its
         # first columns span the old basis, so the new ones extend it
         y = np.linalg.qr(np.hstack([basis, y]))[0][:, basis.shape[1]:]
-        basis, projected = np.hstack([basis, y]), np.vstack([projected, y.T @ block])
-        u, s, vt = np.linalg.svd(projected, full_matrices=False)
-        previous, kept = kept, int(np.sum(s > atol))
-        if kept == previous:
+        new = y.T @ block
+        basis, projected = np.hstack([basis, y]), np.vstack([projected, new])
+        if np.linalg.norm(new, 2) <= atol:
             break
         probe = block @ rng.standard_normal((q, 8))
         probe -= basis @ (basis.T @ probe)
         if bound * np.linalg.norm(probe, axis=0).max() <= atol:
             break
-    if s is None:
-        return np.zeros((p, 0)), np.zeros((q, 0))
+    u, s, vt = np.linalg.svd(projected, full_matrices=False)
+    kept = int(np.sum(s > atol))
     return (basis @ u[:, :kept]) * s[:kept], vt[:kept].T
 
 
@@ -362,8 +366,9 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
         if ordered:
             b = np.array(T[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1], dtype=np.float64)
         else:
-            b = np.asarray(T[np.ix_(rows, cols)], dtype=np.float64)
-        return b * inv_norms[cols]
+            b = np.array(T[np.ix_(rows, cols)], dtype=np.float64)
+        b *= inv_norms[cols]  # in place: the top blocks are (m/2)^2
+        return b
 
     def make(lo: int, hi: int) -> Node:
         node = Node(lo, hi)

@@ -339,7 +339,7 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
     m = T.shape[0]
     inv_norms = 1.0 / norms
     peak = max(float(np.max(np.abs(T[i0:i0 + 512]) * inv_norms)) for i0 in range(0, m, 512))
-    source = "the noise floor given"
+    source = "the noise floor"
     if tol is None:
         tol, source = DEFAULT_TOL * peak, f"{DEFAULT_TOL:.0e} of max |T|, noise unknown"
     if not (math.isfinite(tol) and tol > 0):

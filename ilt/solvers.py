@@ -71,11 +71,12 @@ SERIES_MARGIN = 2
 #: solved columns counted beside the build (16 photos x 8 bounces)
 SERIES_USE_COLUMNS = 128
 # auto picks ``compressed`` where it was measured to win (docs/numerics.md,
-# "compressed"): the box scene's ranks at the noise floor grow slower than m
+# "compressed": 2.7x faster than dense at m = 12288 and a floor of 1e-4, 1.5x at 1e-6;
+# slower than dense at m <= 6075 on the box scene at any floor)
 #: from this size
-COMPRESSED_MIN_M = 8192
+COMPRESSED_MIN_M = 12288
 #: at a noise floor (relative to T's unit columns) of at least this
-COMPRESSED_MIN_NOISE = 1e-5
+COMPRESSED_MIN_NOISE = 1e-4
 
 
 @dataclass(frozen=True)

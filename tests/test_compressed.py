@@ -78,7 +78,7 @@ def test_noise_floor_tolerance_keeps_the_accuracy_of_dense():
     assert np.max(np.abs(op.t1 - t1_true) / t1_true) < 2 * np.max(np.abs(dense.t1 - t1_true) / t1_true)
     exact = compressed_operator(T, tol=1e-12, points=points, leaf=48)
     assert total_rank(op) < total_rank(exact) / 2 and op.memory < exact.memory
-    assert op.figures["tol"] == floor and op.figures["tol_source"] == "the noise floor given"
+    assert op.figures["tol"] == floor and op.figures["tol_source"] == "the noise floor"
 
 
 def test_ranks_fall_as_the_tolerance_rises():

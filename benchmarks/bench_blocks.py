@@ -9,12 +9,11 @@ of one m^3 LU against k LUs of (m/k)^3), and the largest difference between them
 """
 
 import argparse
-import statistics
-import time
 
 import numpy as np
 import scipy.linalg
 
+from ilt.bench import median_time
 from ilt.sim import make_scene
 from ilt.solvers import build_operator
 from ilt.transport import bounce_images
@@ -27,13 +26,6 @@ def objects(m: int, k: int, seed: int = 0):
     return T[np.ix_(order, order)]
 
 
-def timed(fn, repeats):
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
 
 
 def main():
@@ -50,8 +42,8 @@ def main():
             op, _ = build_operator(T, solver)
             return bounce_images(op, photos, 8).bounces
 
-        dense_s, dense = timed(lambda: run("dense"), args.repeats)
-        blocks_s, blocks = timed(lambda: run("blocks"), args.repeats)
+        dense_s, dense = median_time(lambda: run("dense"), args.repeats)
+        blocks_s, blocks = median_time(lambda: run("blocks"), args.repeats)
         diff = np.abs(dense - blocks).max() / np.abs(dense).max()
         print(f"{k:>3} {T.shape[0]:>6} {dense_s:>8.3f} {blocks_s:>9.3f} {dense_s / blocks_s:>12.1f} {k * k:>5} {diff:>9.1e}")
 

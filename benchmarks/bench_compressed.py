@@ -22,27 +22,17 @@ its m x m factors), ranks of the top and second levels, and errors.
 """
 
 import argparse
-import statistics
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ilt.bench import scene_batch
+from ilt.bench import median_time, scene_batch
 from ilt.compressed import compressed_operator, grid_points
 from ilt.evaluate import relative_errors
 from ilt.sim import make_scene
 from ilt.transport import bounce_images, cancellation_operator
-
-
-def timed(fn, repeats):
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
 
 
 def box_points(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -112,7 +102,7 @@ def main():
                 if args.kind == "box" or sigma == float(args.noise.split(",")[0]):
                     dense_bounces = None  # kernel: T is the same for every sigma, dense runs once
                 if (args.kind == "box" or args.dense) and dense_bounces is None:
-                    seconds, (op, dense_bounces) = timed(
+                    seconds, (op, dense_bounces) = median_time(
                         lambda: (lambda o: (o, bounce_images(o, photos, 8).bounces))(cancellation_operator(T)),
                         args.repeats)
                     err = relative_errors(dense_bounces, truth).max() if truth is not None else float("nan")
@@ -121,7 +111,7 @@ def main():
                     del op
                 tol = sigma if sigma else None  # T's largest entry: 1 (its diagonal; box: 0.9-1)
                 points = grid_points(layout, m)
-                seconds, (op, bounces) = timed(
+                seconds, (op, bounces) = median_time(
                     lambda: (lambda o: (o, bounce_images(o, photos, 8).bounces))(compressed_operator(T, tol, points)),
                     args.repeats)
                 f = op.figures

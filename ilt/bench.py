@@ -86,7 +86,8 @@ def _solver(name, layout=None, noise=0.0):
     return run
 
 
-def _median_time(fn, repeats: int, *args):
+def median_time(fn, repeats: int, *args):
+    """(median seconds of ``repeats`` calls of ``fn(*args)``, the last result)."""
     times, result = [], None
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -133,7 +134,7 @@ def bench_case(scene_name: str, m: int, noise: float = 0.0, solvers=SOLVERS, bat
             continue  # nothing to remove
         fn = _scipy if name == "scipy" else _solver(name, scene.layout, noise * np.abs(T).max())
         try:
-            seconds, (t1, bounces, residual) = _median_time(fn, repeats, noisy, photos, n_bounces)
+            seconds, (t1, bounces, residual) = median_time(fn, repeats, noisy, photos, n_bounces)
         except TransportError as exc:
             rows.append(BenchRow(scene=scene_name, m=scene.m, noise=noise, solver=name, batch=batch,
                                  bounces=n_bounces, refused=str(exc)))

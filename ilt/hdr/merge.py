@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+
 class MergeError(ValueError):
     """A bracket that cannot be merged; the message names the file or beam at fault."""
 

@@ -87,19 +87,20 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float) -> n
     return frame_sum > fraction * np.median(frame_sum[rows, cols])
 
 
-def _column_chunk(beams, files, shape, sampler, m):
+def _column_chunk(beams, files, shape, sampler, m, consume=False):
     """Worker: one column of raw T per frame, (m, len(beams)) float64.
 
     sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
-    the (m,) flat pixel indices of the samples (point sampling)."""
+    the (m,) flat pixel indices of the samples (point sampling). ``consume``: the files
+    are scratch copies (:func:`ilt.frames.cached_frame`), removed once read."""
     out = np.empty((m, len(files)))
-    if isinstance(sampler, (str, Path)):
-        operator = _cached_operator(sampler, m)
-        for k, path in enumerate(files):
-            out[:, k] = integrate_with(load_frame(path, shape), operator)
-    else:
-        for k, path in enumerate(files):
-            out[:, k] = load_frame(path, shape).ravel()[sampler]
+    frame = np.empty(shape)  # one float64 buffer for the chunk: the product reads it as is
+    operator = _cached_operator(sampler, m) if isinstance(sampler, (str, Path)) else None
+    for k, path in enumerate(files):
+        load_frame(path, shape, out=frame)
+        out[:, k] = integrate_with(frame, operator) if operator is not None else frame.ravel()[sampler]
+        if consume:
+            os.unlink(path)
     return out
 
 
@@ -129,7 +130,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     outside, with the grid's pixel mapping; cell sampling only), T.png and
     manifest.json (plan layout, frame shape, pixel mapping, kept beams, every drop with
     its reason). ``frame_cache``: frames kept by a preceding centroids run over the same
-    HDR directory (:func:`centroids_and_isf`), read instead of the EXR files.
+    HDR directory (:func:`centroids_and_isf`), read instead of the EXR files and removed
+    as they are read (scratch copies: each is used once).
     ``min_separation`` is in full-frame pixels; ``max_cell_radius`` in
     frame-grid pixels, by default 2 x the median distance between neighbouring kept spots.
     """
@@ -157,7 +159,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         if max_cell_radius is None:
             nn = cKDTree(on_grid).query(on_grid, k=2)[0][:, 1]
             max_cell_radius = 2.0 * float(np.median(nn))
-        labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius)
+        # the pool idles meanwhile: the queries take its cores
+        labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius, threads=workers or -1)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
@@ -176,7 +179,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                                   **hdr.mapping.attributes()})
             sampler = str(tmp / CELLS_FILE)
         source = (lambda b: cached_frame(frame_cache, b)) if frame_cache is not None else (lambda b: hdr.files[b])
-        tasks = [(c, [source(b) for b in c], hdr.frame_shape, sampler, m) for c in chunks(plan, chunk)]
+        tasks = [(c, [source(b) for b in c], hdr.frame_shape, sampler, m, frame_cache is not None)
+                 for c in chunks(plan, chunk)]
         raw = np.empty((m, m))
         done = 0
         with beam_executor(executor, workers) as ex:
@@ -218,12 +222,13 @@ def centroids_and_isf(hdr_dir: str | os.PathLike, spots_out: str | os.PathLike, 
 
     parent = Path(isf_out).absolute().parent
     parent.mkdir(parents=True, exist_ok=True)
+    hdr = open_hdr_directory(hdr_dir)  # headers read once, for both stages
     with tempfile.TemporaryDirectory(dir=parent, prefix=".frames-") as scratch:
         cache = scratch if dark is None else None
         with beam_executor(executor, workers) as pool:  # one pool for both stages
-            spots = run_centroids(hdr_dir, spots_out, params or SpotParameters(), dark=dark, executor=pool,
+            spots = run_centroids(hdr, spots_out, params or SpotParameters(), dark=dark, executor=pool,
                                   workers=workers, progress=progress, force=force, frame_cache=cache)
-            isf = build_isf(hdr_dir, spots_out, isf_out, executor=pool, workers=workers, progress=progress,
+            isf = build_isf(hdr, spots_out, isf_out, executor=pool, workers=workers, progress=progress,
                             force=force, frame_cache=cache, **options)
     return spots, isf
 

@@ -22,23 +22,24 @@ from scipy.spatial import cKDTree
 
 
 def voronoi_cells(centroids: np.ndarray, frame_shape: tuple[int, int], lit: np.ndarray | None = None,
-                  max_radius: float | None = None) -> np.ndarray:
+                  max_radius: float | None = None, threads: int = 1) -> np.ndarray:
     """Label every pixel with its nearest centroid.
 
     centroids: (m, 2) float64 pixel (x, y); frame_shape: (H, W);
     lit: (H, W) bool pixels that belong to the scene (None: all);
-    max_radius: pixels farther than this from every centroid get -1 (None: no limit).
+    max_radius: pixels farther than this from every centroid get -1 (None: no limit);
+    threads: for the k-d tree queries (-1: all cores).
     Returns (H, W) int32 labels in 0..m-1, -1 outside every cell.
     """
     height, width = frame_shape
-    gy, gx = np.mgrid[:height, :width]
-    pixels = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float64)
+    flat = np.arange(height * width) if lit is None else np.flatnonzero(lit)  # unlit pixels: no query
+    pixels = np.stack([flat % width, flat // width], axis=1).astype(np.float64)
     bound = np.inf if max_radius is None else float(max_radius)
-    dist, index = cKDTree(np.asarray(centroids, dtype=np.float64)).query(pixels, distance_upper_bound=bound)
-    labels = np.where(np.isfinite(dist), index, -1).astype(np.int32).reshape(height, width)
-    if lit is not None:
-        labels[~lit] = -1
-    return labels
+    dist, index = cKDTree(np.asarray(centroids, dtype=np.float64)).query(pixels, distance_upper_bound=bound,
+                                                                           workers=threads)
+    labels = np.full(height * width, -1, dtype=np.int32)
+    labels[flat] = np.where(np.isfinite(dist), index, -1)
+    return labels.reshape(height, width)
 
 
 def cell_operator(labels: np.ndarray, m: int | None = None) -> scipy.sparse.csr_matrix:

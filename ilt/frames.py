@@ -137,8 +137,12 @@ def frame_header(path: Path) -> tuple[tuple[int, int], PixelMapping | None]:
         inp.close()
 
 
-def open_hdr_directory(path: str | os.PathLike) -> HDRDirectory:
-    """List and check an HDR directory (headers only): every beam has an image, all the same size."""
+def open_hdr_directory(path: str | os.PathLike | HDRDirectory) -> HDRDirectory:
+    """List and check an HDR directory (headers only): every beam has an image, all the
+    same size. An :class:`HDRDirectory` already opened is returned as it is (a run of
+    two stages reads the headers once)."""
+    if isinstance(path, HDRDirectory):
+        return path
     path = Path(path)
     if not path.is_dir():
         raise FrameError(f"{path}: not a directory of EXR frames")
@@ -214,11 +218,25 @@ def cached_frame(cache: str | os.PathLike, beam: int) -> Path:
     return Path(cache) / f"beam-{beam:05d}.npy"
 
 
-def load_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """:func:`read_frame`, or a frame kept by :func:`cached_frame` (``.npy``)."""
+def load_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None,
+               out: np.ndarray | None = None) -> np.ndarray:
+    """:func:`read_frame`, or a frame kept by :func:`cached_frame` (``.npy``).
+
+    ``out``: an array of the frame's shape to copy the frame into (converting its dtype)
+    and return, so that a loop over frames reuses one buffer (a kept frame is then read
+    through a memory map, with no frame-sized temporary).
+    """
     if Path(path).suffix == ".npy":
-        return np.load(path, allow_pickle=False)
-    return read_frame(path, shape)
+        frame = np.load(path, mmap_mode=None if out is None else "r", allow_pickle=False)
+        if shape is not None and frame.shape != tuple(shape):
+            raise FrameError(f"{path}: frame is {frame.shape[1]} x {frame.shape[0]} pixels, "
+                             f"expected {shape[1]} x {shape[0]}")
+    else:
+        frame = read_frame(path, shape)
+    if out is None:
+        return frame
+    np.copyto(out, frame)
+    return out
 
 
 def chunks(items: Sequence, size: int) -> list[Sequence]:

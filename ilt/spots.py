@@ -23,6 +23,7 @@ import csv
 import logging
 import math
 import os
+import threading
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -102,15 +103,18 @@ def find_spot(image: np.ndarray, params: SpotParameters = SpotParameters(),
     if dark is not None:
         img = img - dark
     height, width = img.shape
-    background, noise = _local_background(img)
-    iy, ix = np.unravel_index(int(np.argmax(img)), img.shape)
+    # full-frame passes in float32 into this thread's buffers; the window in float64
+    full = np.ascontiguousarray(img, dtype=np.float32)
+    buffers = _frame_buffers(img.shape)
+    background, noise = _local_background(full, out=buffers[0])
+    iy, ix = np.unravel_index(int(np.argmax(full)), img.shape)
     top = float(img[iy, ix])
     amplitude = top - float(background[iy, ix])
     if not amplitude > max(params.min_snr * noise, 1e-30 * max(1.0, abs(top))):
         snr = amplitude / noise if noise > 0 else 0.0
         return Spot(math.nan, math.nan, 0.0, max(amplitude, 0.0), 0, {"none": round(snr, 3)})
-    above = img - background
-    mask = (above > params.threshold * amplitude).astype(np.uint8)
+    above = cv2.subtract(full, background, dst=buffers[1])
+    mask = cv2.compare(above, float(params.threshold * amplitude), cv2.CMP_GT, dst=buffers[2])
     (x0, y0, w, h, area), core, others = _peak_component(mask, above, iy, ix)
     flags: dict = {}
     if others.size:
@@ -159,8 +163,23 @@ _BLOCK_SAMPLES = 4
 _BLOCK_FILTER = 7
 
 
-def _local_background(img: np.ndarray) -> tuple[np.ndarray, float]:
-    """A robust local background level (H, W) float32 and the pixel noise sigma.
+_BUFFERS = threading.local()
+
+
+def _frame_buffers(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """This thread's full-frame scratch arrays (background, above, mask), kept between
+    frames of one shape: a fresh frame-sized array per pass costs page faults that
+    took more time than the arithmetic (find_spot 3.4 -> 1.5 ms at 640 x 480)."""
+    held = getattr(_BUFFERS, "arrays", None)
+    if held is None or held[0].shape != shape:
+        held = (np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.uint8))
+        _BUFFERS.arrays = held
+    return held
+
+
+def _local_background(img: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """A robust local background level (H, W) float32 (into ``out`` when given) and
+    the pixel noise sigma.
 
     A large median: block medians of a subsampled frame, median-filtered over
     ``_BLOCK_FILTER`` blocks and interpolated back; it follows smooth backgrounds
@@ -177,14 +196,18 @@ def _local_background(img: np.ndarray) -> tuple[np.ndarray, float]:
     diff = np.diff(samples, axis=1) if samples.shape[1] > 1 else np.diff(samples, axis=0)
     noise = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / math.sqrt(2)
     by, bx = max(1, samples.shape[0] // _BLOCK_SAMPLES), max(1, samples.shape[1] // _BLOCK_SAMPLES)
+    out = np.empty(img.shape, np.float32) if out is None else out
     if samples.shape[0] < _BLOCK_SAMPLES or samples.shape[1] < _BLOCK_SAMPLES:
-        return np.full(img.shape, np.median(samples), dtype=np.float32), noise
+        out[...] = np.median(samples)
+        return out, noise
     cells = samples[:by * _BLOCK_SAMPLES, :bx * _BLOCK_SAMPLES].reshape(by, _BLOCK_SAMPLES, bx, _BLOCK_SAMPLES)
     coarse = np.median(cells.transpose(0, 2, 1, 3).reshape(by, bx, -1), axis=2).astype(np.float32)
     coarse = median_filter(coarse, size=(min(_BLOCK_FILTER, by), min(_BLOCK_FILTER, bx)), mode="nearest")
-    fine = cv2.resize(coarse, (bx * block, by * block), interpolation=cv2.INTER_LINEAR)
-    fine = fine[:height, :width]
-    return cv2.copyMakeBorder(fine, 0, height - fine.shape[0], 0, width - fine.shape[1], cv2.BORDER_REPLICATE), noise
+    if (by * block, bx * block) == (height, width):  # the common case: blocks tile the frame
+        return cv2.resize(coarse, (width, height), dst=out, interpolation=cv2.INTER_LINEAR), noise
+    fine = cv2.resize(coarse, (bx * block, by * block), interpolation=cv2.INTER_LINEAR)[:height, :width]
+    cv2.copyMakeBorder(fine, 0, height - fine.shape[0], 0, width - fine.shape[1], cv2.BORDER_REPLICATE, dst=out)
+    return out, noise
 
 
 #: half-size of the first window in which the spot's component is labelled
@@ -511,6 +534,7 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
     Returns the manifest's summary fields.
     """
     from ilt.frames import (
+        HDRDirectory,
         beam_executor,
         chunks,
         open_hdr_directory,
@@ -520,14 +544,14 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
     from ilt.imageio import write_exr
     from ilt.manifest import staged_directory, write_manifest
 
-    path = Path(hdr_dir)
-    if path.is_dir() and is_capture_directory(path):
+    path = hdr_dir.path if isinstance(hdr_dir, HDRDirectory) else Path(hdr_dir)
+    if not isinstance(hdr_dir, HDRDirectory) and path.is_dir() and is_capture_directory(path):
         if dark is not None:
             raise SpotsError(f"{path}: --dark applies to HDR directories; a capture's own dark frames are used")
         names, sources, layout, inputs = _capture_beams(path)
         reader, default_mapping, frame_cache = read_shortest_exposure, None, None
     else:
-        hdr = open_hdr_directory(path)
+        hdr = open_hdr_directory(hdr_dir)
         if dark:
             read_frame(dark, hdr.frame_shape)
         names, sources, layout, inputs = [f.name for f in hdr.files], list(hdr.files), hdr.layout, \

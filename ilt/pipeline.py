@@ -178,6 +178,26 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
         spot_params["roi"] = tuple(float(v) for v in spot_params["roi"])
     isf_params = {k: v for k, v in b.items() if k != "workers"}
 
+    # centroids keeps every decoded frame for build-isf (ilt.frames.cached_frame), so a
+    # run decodes each EXR once; only frames kept by this run are ever read back
+    scratch = ws.root / SCRATCH_DIR
+    kept = {"frames": False}
+
+    def make_centroids():
+        _remove_scratch(ws)
+        scratch.mkdir(parents=True)
+        run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params), workers=c["workers"], force=True,
+                      frame_cache=scratch)
+        kept["frames"] = True
+
+    def make_build_isf():
+        try:
+            build_isf(d["merge"], d["centroids"], d["build-isf"], workers=b["workers"], force=True,
+                      frame_cache=scratch if kept["frames"] else None, **isf_params)
+        finally:
+            kept["frames"] = False
+            _remove_scratch(ws)
+
     def make_decompose():
         with staged_directory(d["decompose"], force=True) as tmp:
             decompose(load_isf(d["build-isf"]), photo_paths(ws, cfg), tmp, n_bounces=dec["n_bounces"],
@@ -189,12 +209,9 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
         Stage("merge", d["merge"], fingerprinted(m), {"capture": d["capture"]},
               lambda: merge_capture(d["capture"], d["merge"], merge_options(m), workers=m["workers"], force=True,
                                     parameters=fingerprinted(m))),
-        Stage("centroids", d["centroids"], fingerprinted(c), {"hdr": d["merge"]},
-              lambda: run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params),
-                                    workers=c["workers"], force=True)),
+        Stage("centroids", d["centroids"], fingerprinted(c), {"hdr": d["merge"]}, make_centroids),
         Stage("build-isf", d["build-isf"], fingerprinted(b), {"hdr": d["merge"], "spots": d["centroids"]},
-              lambda: build_isf(d["merge"], d["centroids"], d["build-isf"], workers=b["workers"], force=True,
-                                **isf_params)),
+              make_build_isf),
     ]
     if cfg.photo_kinds:
         stages.append(Stage("photos", d["photos"], {"sim": list(cfg.photo_kinds), **capture_parameters(cfg.rig),
@@ -207,6 +224,16 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
         inputs.update({f"file {p.name}": p for p in cfg.photo_files})
         stages.append(Stage("decompose", d["decompose"], fingerprinted(dec), inputs, make_decompose))
     return stages
+
+
+#: where a run keeps decoded frames between centroids and build-isf (removed after)
+SCRATCH_DIR = ".frames-scratch"
+
+
+def _remove_scratch(ws: Workspace) -> None:
+    import shutil
+
+    shutil.rmtree(ws.root / SCRATCH_DIR, ignore_errors=True)
 
 
 def photo_paths(ws: Workspace, cfg: RunConfig) -> list[Path]:
@@ -332,6 +359,14 @@ def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False) -> list[dic
     stages = plan_stages(ws, cfg)
     check_capture(stages[0], force)   # before the config is installed: a refused run changes nothing
     install_config(ws, cfg)
+    _remove_scratch(ws)  # frames a killed run kept
+    try:
+        return _run_stages(ws, cfg, stages, force)
+    finally:
+        _remove_scratch(ws)
+
+
+def _run_stages(ws: Workspace, cfg: RunConfig, stages: list[Stage], force: bool) -> list[dict]:
     summaries = []
     for stage in stages:
         t0 = time.monotonic()

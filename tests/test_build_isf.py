@@ -188,3 +188,19 @@ def test_pixel_mapping_from_headers_else_the_manifest_else_full_resolution(tmp_p
         open_hdr_directory(tmp_path / "mixed")
     np.testing.assert_allclose(half.to_full(half.to_grid([[16.0, 10.5]])), [[16.0, 10.5]])
     np.testing.assert_allclose(half.to_full([[3, 2]]), [[6.5, 4.5]])
+
+
+def test_centroids_and_isf_decode_once_and_agree_with_the_two_stages(runs, tmp_path):
+    """The combined run (every EXR decoded once, frames kept as scratch) writes the same
+    spots and the same T, bit for bit, as `ilt centroids` then `ilt build-isf`, in a
+    pool of 2 workers as in one, and removes its scratch frames."""
+    from ilt.build_isf import centroids_and_isf
+
+    root, sim = runs[16]
+    for workers in (1, 2):
+        out = tmp_path / f"j{workers}"
+        centroids_and_isf(sim / "hdr", out / "spots", out / "isf", workers=workers)
+        assert (out / "spots" / "spots.csv").read_text() == (root / "spots" / "spots.csv").read_text()
+        for name in ("T.npy", "scales.npy"):
+            assert np.array_equal(np.load(out / "isf" / name), np.load(root / "cell" / name)), (workers, name)
+        assert sorted(p.name for p in out.iterdir()) == ["isf", "spots"]

@@ -53,6 +53,20 @@ def test_first_run_writes_every_stage(workspace):
     assert (workspace / "rig.toml").read_text() == SMALL_RIG
 
 
+def test_build_isf_reads_the_frames_centroids_kept_and_leaves_none(workspace, tmp_path):
+    """`ilt run` decodes every EXR once (centroids keeps the frames for build-isf): its T
+    is the one build-isf makes from the EXR files, and the scratch copies are gone."""
+    import numpy as np
+
+    from ilt.build_isf import build_isf
+    from ilt.pipeline import SCRATCH_DIR
+
+    assert not (workspace / SCRATCH_DIR).exists()
+    build_isf(workspace / "hdr", workspace / "spots", tmp_path / "isf", workers=1)
+    for name in ("T.npy", "scales.npy"):
+        assert np.array_equal(np.load(workspace / "isf" / name), np.load(tmp_path / "isf" / name)), name
+
+
 def test_second_run_skips_every_stage(workspace):
     result = run("run", "-w", str(workspace), "--json")
     assert stages_run(result) == []

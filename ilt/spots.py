@@ -391,7 +391,7 @@ OVERLAY_FILE = "overlay.png"
 
 def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, frame_cache=None):
     """Worker: spots of a chunk of frames (full-frame pixels), the chunk's pixelwise sum
-    (H, W) float64 on the frame grid, and the frame grid's pixel mapping.
+    (H, W) float32 on the frame grid, and the frame grid's pixel mapping.
 
     sources: what ``reader(source, dark)`` turns into ``(frame, mapping or None,
     saturation)`` (EXR paths, or beam directories of a capture; ``default_mapping``
@@ -418,7 +418,7 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, frame
         total += frame
         if frame_cache is not None:
             np.save(cached_frame(frame_cache, beam), frame)
-    return spots, total.astype(np.float64), mapping
+    return spots, total, mapping  # float32: half the bytes back to the caller
 
 
 def read_exr_frame(path, dark):
@@ -566,7 +566,7 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
         for c, (chunk_spots, chunk_total, chunk_mapping) in zip(
                 (t[0] for t in tasks), run_chunks(_centroid_chunk, tasks, ex, progress=progress)):
             if total is None:
-                total, mapping = chunk_total, chunk_mapping
+                total, mapping = chunk_total.astype(np.float64), chunk_mapping
             elif chunk_total.shape != total.shape or chunk_mapping != mapping:
                 raise SpotsError(f"{sources[c[0]]}: beam {c[0]}: frame of {chunk_total.shape[1]} x "
                                  f"{chunk_total.shape[0]} pixels differs from beam 0's")

@@ -167,6 +167,46 @@ def run_bench(sizes, scenes=("box",), noises=(0.0,), solvers=SOLVERS, batch: int
     return rows
 
 
+@dataclass
+class BiasVarianceRow:
+    """Bias against variance of one filter width on one case (:func:`ilt.regularise.bias_variance`)."""
+
+    scene: str
+    m: int
+    noise: float
+    draws: int
+    width: float
+    chosen: int
+    bias: list
+    spread: list
+    error: list
+    pooled_bias: float
+    pooled_spread: float
+    pooled_error: float
+
+
+def bias_variance_case(scene_name: str, m: int, noise: float, draws: int = 8, batch: int = 16,
+                       n_bounces: int = 8, seed: int = 0) -> list[BiasVarianceRow]:
+    """Bias and variance of the bounces, plain and at every filter width, over ``draws``
+    noise draws of sigma = ``noise`` x max |T| on one scene."""
+    from ilt.regularise import bias_variance
+
+    scene = make_scene(scene_name, beams=m)
+    T, _ = scene.isf()
+    photos, truth = scene_batch(scene, batch, n_bounces, seed)
+    rows = bias_variance(T, scene.layout, photos, truth, noise * np.abs(T).max(), draws=draws, seed=seed + 1)
+    return [BiasVarianceRow(scene=scene_name, m=scene.m, noise=noise, draws=draws, **asdict(r)) for r in rows]
+
+
+BV_HEADER = (f"{'scene':>8} {'m':>5} {'noise':>7} {'width':>6} {'chosen':>6} {'bias':>9} {'spread':>9} "
+             f"{'error':>9}   (pooled over bounces, relative to the truth)")
+
+
+def format_bv_row(r: BiasVarianceRow) -> str:
+    return (f"{r.scene:>8} {r.m:>5} {r.noise:>7.0e} {r.width:>6g} {r.chosen:>3}/{r.draws:<2} {r.pooled_bias:>9.2e} "
+            f"{r.pooled_spread:>9.2e} {r.pooled_error:>9.2e}")
+
+
 HEADER = (f"{'scene':>8} {'m':>5} {'noise':>7} {'solver':>11} {'seconds':>8} {'/scipy':>6} {'MiB':>6} "
           f"{'bounce err':>10} {'T1 err':>8} {'closure':>8} {'amplif':>7}")
 
@@ -183,17 +223,21 @@ def format_table(rows: list[BenchRow]) -> str:
     return "\n".join([HEADER, *map(format_row, rows)])
 
 
-def plot(rows: list[BenchRow], path) -> None:
+def plot(rows: list[BenchRow], path, bias_variance: list[BiasVarianceRow] = ()) -> None:
     """Left: run time against error, one curve per solver (log-log), points along m.
-    Right: worst bounce error against the noise in T, one curve per solver."""
+    Middle: worst bounce error against the noise in T, one curve per solver. Right
+    (with ``bias_variance`` rows): bias and spread against the filter width, per noise."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     from ilt.manifest import atomic_path
 
-    fig = Figure(figsize=(11, 4.5))
+    fig = Figure(figsize=(16.5 if bias_variance else 11, 4.5))
     FigureCanvasAgg(fig)
-    ax1, ax2 = fig.subplots(1, 2)
+    axes = fig.subplots(1, 3 if bias_variance else 2)
+    ax1, ax2 = axes[:2]
+    if bias_variance:
+        _plot_bias_variance(axes[2], bias_variance)
     rows = [r for r in rows if not r.refused]
     solvers = list(dict.fromkeys(r.solver for r in rows))
     clean = [r for r in rows if r.noise == 0]
@@ -223,3 +267,22 @@ def plot(rows: list[BenchRow], path) -> None:
 
 def rows_json(rows: list[BenchRow]) -> list[dict]:
     return [asdict(r) for r in rows]
+
+
+def _plot_bias_variance(ax, rows: list[BiasVarianceRow]) -> None:
+    """Bias (solid) and spread (dashed) of the bounces against the filter width, one
+    colour per case; a ring marks the width the discrepancy principle picked most."""
+    cases = list(dict.fromkeys((r.scene, r.m, r.noise) for r in rows))
+    for k, case in enumerate(cases):
+        pts = sorted((r for r in rows if (r.scene, r.m, r.noise) == case), key=lambda r: r.width)
+        colour = f"C{k % 10}"
+        x = [r.width for r in pts]
+        label = f"{case[0]} m={case[1]} noise {case[2]:g}"
+        ax.semilogy(x, [r.pooled_bias for r in pts], "-o", color=colour, ms=3, label=label + ": bias")
+        ax.semilogy(x, [r.pooled_spread for r in pts], "--", color=colour, label="spread")
+        pick = max(pts, key=lambda r: r.chosen)
+        ax.semilogy([pick.width], [pick.pooled_error], "o", mfc="none", mec=colour, ms=10)
+    ax.set(xlabel="filter width (layout steps; 0 = plain inversion)", ylabel="relative to the true bounces",
+           title="bias and spread (ring: discrepancy principle)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)

@@ -201,8 +201,15 @@ def test_bench_writes_figures_with_errors_against_truth(tmp_path):
             assert 1e-6 < r["bounce_error"] < 1e-2 and 0.1 < r["amplification"] < 100
         if r["solver"] == "scipy":
             assert r["ratio_to_scipy"] == 1.0
-    assert json.loads((tmp_path / "b" / "bench.json").read_text())["rows"] == rows
+    written = json.loads((tmp_path / "b" / "bench.json").read_text())
+    assert written["rows"] == rows
     assert (tmp_path / "b" / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # bias against variance of regularisation: at the smallest size, for the noisy case
+    bv = written["bias_variance"]
+    assert {(r["m"], r["noise"]) for r in bv} == {(48, 1e-4)} and bv[0]["width"] == 0.0
+    assert sum(r["chosen"] for r in bv) == 8 == bv[0]["draws"]
+    assert all(len(r["bias"]) == len(r["spread"]) == 8 for r in bv)
+    assert "bias" in result.stderr and "spread" in result.stderr
 
 
 def test_decompose_solver_noise_and_regularisation(isf_dir, tmp_path):

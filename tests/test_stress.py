@@ -134,3 +134,39 @@ def test_regularised_t_beats_plain_under_noise(name, beams):
             assert reg < plain, (sigma, reg, plain)
         else:
             assert reg <= 1.05 * plain
+
+
+def test_bias_against_variance_of_regularisation():
+    """Over noise draws, plain inversion is (nearly) unbiased with the noise's spread;
+    wider filters trade spread for bias: spread falls and bias rises with the width,
+    and error^2 = bias^2 + spread^2 per bounce (the decomposition of the mean squared
+    error, with unbiased estimates of both). The width the discrepancy principle picks (the same rule as
+    regularise_isf, checked on the same draws) has less error than plain inversion."""
+    from ilt.regularise import bias_variance, regularise_isf
+
+    scene = make_scene("box", beams=192)
+    T, _ = scene.isf()
+    photos, truth = scene_batch(scene, 4, 4)
+    sigma = 3e-3
+    rows = bias_variance(T, scene.layout, photos, truth, sigma, draws=6, seed=1)
+    widths = [r.width for r in rows]
+    assert widths[0] == 0.0 and widths == sorted(widths) and sum(r.chosen for r in rows) == 6
+    for r in rows:
+        error, bias, spread = (np.square(v) for v in (r.error, r.bias, r.spread))
+        positive = bias > 0     # a bias estimate below 0 (pure noise) is clipped: error^2 < spread^2 there
+        np.testing.assert_allclose(error[positive], (bias + spread)[positive], rtol=1e-9)
+        assert (error[~positive] <= spread[~positive] * (1 + 1e-9)).all()
+    plain, widest = rows[0], rows[-1]
+    assert plain.pooled_bias < 0.2 * plain.pooled_spread          # noise, not bias, limits plain inversion
+    assert widest.pooled_spread < 0.5 * plain.pooled_spread       # filtering removes most of the spread
+    assert widest.pooled_bias > 2 * plain.pooled_bias             # at the price of bias
+    spreads = [r.pooled_spread for r in rows]
+    assert all(b <= a * 1.02 for a, b in zip(spreads, spreads[1:]))
+    picked = max(rows, key=lambda r: r.chosen)
+    assert picked.width > 0 and picked.pooled_error < plain.pooled_error
+    # the same draws through regularise_isf choose the same widths
+    rng = np.random.default_rng(1)
+    unit = T / np.linalg.norm(T, axis=0)
+    chosen = [regularise_isf(unit + sigma * rng.normal(size=T.shape), scene.layout, sigma)[1].width
+              for _ in range(6)]
+    assert {w: chosen.count(w) for w in set(chosen)} == {r.width: r.chosen for r in rows if r.chosen}

@@ -29,7 +29,7 @@ import scipy.linalg
 
 from ilt.compressed import grid_points
 from ilt.evaluate import relative_errors
-from ilt.regularise import regularise_isf
+from ilt.regularise import BiasVariance, regularise_isf
 from ilt.sim import ILLUMINATIONS, make_scene
 from ilt.solvers import build_operator
 from ilt.transport import TransportError, bounce_images
@@ -167,22 +167,14 @@ def run_bench(sizes, scenes=("box",), noises=(0.0,), solvers=SOLVERS, batch: int
     return rows
 
 
-@dataclass
-class BiasVarianceRow:
-    """Bias against variance of one filter width on one case (:func:`ilt.regularise.bias_variance`)."""
+@dataclass(frozen=True)
+class BiasVarianceRow(BiasVariance):
+    """:class:`ilt.regularise.BiasVariance` of one filter width on one case."""
 
-    scene: str
-    m: int
-    noise: float
-    draws: int
-    width: float
-    chosen: int
-    bias: list
-    spread: list
-    error: list
-    pooled_bias: float
-    pooled_spread: float
-    pooled_error: float
+    scene: str = ""
+    m: int = 0
+    noise: float = 0.0
+    draws: int = 0
 
 
 def bias_variance_case(scene_name: str, m: int, noise: float, draws: int = 8, batch: int = 16,

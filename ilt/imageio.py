@@ -88,6 +88,20 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
         raise ImageError(f"{path}: write failed: {exc.strerror or exc}") from exc
 
 
+def write_png(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """An 8-bit PNG (H, W) grey or (H, W, 3) BGR, atomically; errors name the file."""
+    import cv2
+
+    path = Path(path)
+    # deflate level 1: level 3 takes about twice the time for files some 10 % smaller
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image, dtype=np.uint8), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise ImageError(f"{path}: PNG encoding failed")
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(buf.tobytes())
+    return path
+
+
 def write_exr(
     path: str | os.PathLike,
     image: np.ndarray,

@@ -18,7 +18,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ilt.imageio import atomic_output
+from ilt.imageio import atomic_output, write_png
 
 DPI = 100
 # Figure sizes in inches: a single image (save_png), and one panel of a row.
@@ -104,7 +104,7 @@ def save_png(
     x0, y0 = bx0 + (bw - dw) // 2, by0 + (bh - dh) // 2
     picture = cv2.applyColorMap(cv2.resize(level, (dw, dh), interpolation=cv2.INTER_NEAREST), cv2.COLORMAP_MAGMA)
     canvas[y0:y0 + dh, x0:x0 + dw] = picture
-    ink, font = (0, 0, 0), cv2.FONT_HERSHEY_SIMPLEX
+    ink = (0, 0, 0)
     cv2.rectangle(canvas, (x0 - 1, y0 - 1), (x0 + dw, y0 + dh), ink, 1)
     _text(canvas, "0", (x0, y0 + dh + 16), 0.4)
     if cols > 1:
@@ -126,12 +126,7 @@ def save_png(
     canvas[by0:by0 + bh, width - 24:width - 2] = np.rot90(side, 1)[:, :, None]
     if title is not None:
         _text(canvas, title, (x0 + dw // 2, 26), 0.55, align="centre")
-    ok, data = cv2.imencode(".png", canvas, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise ValueError(f"{path}: OpenCV could not encode the PNG")
-    with atomic_output(path) as tmp:
-        tmp.write_bytes(data.tobytes())
-    return path
+    return write_png(path, canvas)
 
 
 def _text(canvas: np.ndarray, text: str, at: tuple[int, int], size: float, align: str = "left") -> None:

@@ -634,7 +634,7 @@ def draw_overlay(path: Path, background: np.ndarray, spots: list[Spot], mapping=
     a title bar with the counts. ``mapping``: of the frame grid (spots are in full-frame
     pixels). Drawn with OpenCV at an integer zoom (the long side at least 800 pixels),
     sub-pixel positions kept: a matplotlib figure took longer than a thousand spots."""
-    from ilt.imageio import atomic_output
+    from ilt.imageio import write_png
     from ilt.preview import log_scale
 
     height, width = background.shape
@@ -664,9 +664,4 @@ def draw_overlay(path: Path, background: np.ndarray, spots: list[Spot], mapping=
     clean = int((~bad & finite).sum())
     cv2.putText(canvas, f"{clean} clean spots, {int(bad.sum())} flagged", (8, bar - 9),
                 cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
-    ok, buf = cv2.imencode(".png", canvas, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    with atomic_output(path) as tmp:
-        tmp.write_bytes(buf.tobytes())
-    return path
+    return write_png(path, canvas)

@@ -22,7 +22,7 @@ from ilt.hdr.bracket import Bracket, FrameRecord, list_beams, logged_fingerprint
 from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
 from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
 from ilt.hdr.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
-from ilt.imageio import one_thread, write_exr
+from ilt.imageio import one_thread, write_exr, write_png
 from ilt.manifest import atomic_path, staged_directory, write_json, write_manifest
 from ilt.workers import process_pool
 
@@ -304,19 +304,6 @@ def merge_files(paths: list[str | os.PathLike], output: str | os.PathLike,
     write_png(siblings[1], count)
     write_png(siblings[2], saturated.astype(np.uint8) * 255)
     return output, {"output": str(output), "frames": len(frames), "saturated_pixels": int(saturated.sum())}
-
-
-def write_png(path: Path, image: np.ndarray) -> Path:
-    """An 8-bit single-channel PNG, atomically (valid counts, masks)."""
-    import cv2
-
-    # deflate level 1: level 3 takes about twice the time for files some 10 % smaller
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image, dtype=np.uint8), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(buf.tobytes())
-    return path
 
 
 # ---------------------------------------------------------------- calibration

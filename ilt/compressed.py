@@ -45,9 +45,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
-from scipy.sparse.linalg import LinearOperator, onenormest
+from scipy.sparse.linalg import LinearOperator
 
-from ilt.transport import TransportError, UnitColumnOperator, check_photo, prepare_isf, scale_rows
+from ilt.transport import (
+    TransportError,
+    UnitColumnOperator,
+    check_photo,
+    one_norm_estimate,
+    prepare_isf,
+    scale_rows,
+)
 
 log = logging.getLogger(__name__)
 
@@ -407,22 +414,8 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
         raise TransportError(f"compressed: a solve's residual ||T x - b|| / ||x|| = {op.residual:.3g} is "
                              f"{op.residual / op.allowance:.0f} times what tol {tol:.2g} allows "
                              f"({op.allowance:.2g}); use --solver dense")
-    op.rcond = 1.0 / (_one_norm(T, inv_norms) * _inverse_one_norm(op))
+    op.rcond = 1.0 / (_one_norm(T, inv_norms) * one_norm_estimate(_inverse(op)))
     return op
-
-
-def _inverse_one_norm(op: CompressedOperator, columns: int = 4) -> float:
-    """``||H^-1||_1`` estimated by Higham & Tisseur's block 1-norm estimator
-    (scipy's onenormest) with ``columns`` probes from a fixed seed. onenormest draws
-    its probes from NumPy's global generator: with its default 2 probes the estimate
-    changed with whatever ran before and fell 13-30 % short on the occluded scene;
-    4 probes found the exact norm for every one of 10 seeds there."""
-    state = np.random.get_state()
-    try:
-        np.random.seed(0)
-        return float(onenormest(_inverse(op), t=columns))
-    finally:
-        np.random.set_state(state)
 
 
 def _check_residual(T, inv_norms: np.ndarray, op: CompressedOperator, seed: int) -> tuple[float, float]:

@@ -43,13 +43,13 @@ from scipy.sparse.linalg import (
     ArpackNoConvergence,
     LinearOperator,
     eigs,
-    onenormest,
 )
 
 from ilt.transport import (
     TransportError,
     UnitColumnOperator,
     check_photo,
+    one_norm_estimate,
     prepare_isf,
     scale_rows,
 )
@@ -343,7 +343,7 @@ def _dense(m: int, nnz: int, threshold: float, colours: str) -> TransportError:
 
 def _inverse_one_norm(S: sparse.csr_matrix, d_inv: np.ndarray, tol: float, max_iterations: int) -> tuple[float, int]:
     """``||S^-1||_1`` estimated from a few solves with S and S^T (Hager-Higham,
-    scipy's onenormest). ``I - D^-1 S^T`` is similar to ``(I - D^-1 S)^T``, so the
+    :func:`ilt.transport.one_norm_estimate`). ``I - D^-1 S^T`` is similar to ``(I - D^-1 S)^T``, so the
     series on S^T converges as fast. Returns (estimate, products with S)."""
     ST = S.T.tocsr()
     products = 0
@@ -359,4 +359,4 @@ def _inverse_one_norm(S: sparse.csr_matrix, d_inv: np.ndarray, tol: float, max_i
     m = S.shape[0]
     inverse = LinearOperator((m, m), matvec=solver(S), matmat=solver(S), rmatvec=solver(ST), rmatmat=solver(ST),
                              dtype=np.float64)
-    return float(onenormest(inverse)), products
+    return one_norm_estimate(inverse), products

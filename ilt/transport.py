@@ -151,6 +151,23 @@ def _duplicate_columns(T: np.ndarray) -> tuple[int, int] | None:
     return None
 
 
+def one_norm_estimate(operator, columns: int = 4) -> float:
+    """``||operator||_1`` by Higham & Tisseur's block 1-norm estimator (scipy's
+    onenormest) with ``columns`` probes from a fixed seed, NumPy's global generator
+    left as it was. onenormest draws its probes from that generator: with its default
+    2 probes the estimate changed with whatever ran before (a test order made an
+    inverse's norm 30 % short on the occluded scene); 4 probes found the exact norm
+    for every one of 10 seeds there."""
+    from scipy.sparse.linalg import onenormest
+
+    state = np.random.get_state()
+    try:
+        np.random.seed(0)
+        return float(onenormest(operator, t=columns))
+    finally:
+        np.random.set_state(state)
+
+
 def prepare_isf(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Check an ISF matrix and return it with its column 2-norms (m,) float64.
 

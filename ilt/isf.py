@@ -119,9 +119,11 @@ def read_samples_with_beams(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return out, beams
 
 
-def load_isf(path: str | os.PathLike) -> ISF:
+def load_isf(path: str | os.PathLike, mmap: bool = False) -> ISF:
     """Read an ISF directory, or a bare ``T.npy`` (with ``samples.csv`` and
-    ``manifest.json`` beside it when present)."""
+    ``manifest.json`` beside it when present). ``mmap``: T stays a read-only memory
+    map of the file, read as the solver needs it (the compressed solver reads it a
+    block at a time; dense solvers copy it once)."""
     path = Path(path)
     if path.is_dir():
         directory, t_path = path, path / T_FILE
@@ -130,7 +132,7 @@ def load_isf(path: str | os.PathLike) -> ISF:
     if not t_path.exists():
         raise ISFError(f"{t_path}: no such file (expected an ISF directory or a T .npy file)")
     try:
-        T = np.load(t_path, allow_pickle=False)
+        T = np.load(t_path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise ISFError(f"{t_path}: not a readable .npy array ({exc})") from None
     if T.ndim != 2 or T.shape[0] != T.shape[1]:

@@ -67,6 +67,16 @@ def test_decompose_npy_matches_truth_and_reuses_operators(isf_dir, tmp_path):
     assert json.loads(result.stdout)[0]["operators"]["cached"] is True
 
 
+def test_decompose_reads_t_through_a_read_only_memory_map(isf_dir):
+    """`ilt decompose` memory-maps T.npy: nothing holds it twice, pages are read as a
+    solver needs them (and the kernel may drop them again), nothing can write to it."""
+    from ilt.isf import load_isf
+
+    mapped, loaded = load_isf(isf_dir, mmap=True).T, load_isf(isf_dir).T
+    assert isinstance(mapped, np.memmap) and not mapped.flags.writeable
+    assert not isinstance(loaded, np.memmap) and np.array_equal(mapped, loaded)
+
+
 def test_decompose_exr_frame(isf_dir, tmp_path):
     out = tmp_path / "out"
     run("decompose", "--isf", isf_dir, isf_dir / "photos" / "projector.exr", "-o", out, "--no-cache")

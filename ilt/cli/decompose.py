@@ -58,7 +58,7 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
     from ilt.isf import load_isf
 
     isf_path, output = workspace.resolve(isf_path, "build-isf"), workspace.resolve(output, "decompose")
-    isf = load_isf(isf_path)
+    isf = load_isf(isf_path, mmap=True)  # T is never held twice: solvers copy or read it as they need
     cache = None if no_cache else (Path(cache_dir) if cache_dir else default_cache_dir())
     summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache, force=force,
                           solver=solver, noise=noise, regularise=regularise)

@@ -6,6 +6,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from click.testing import CliRunner
 
 from ilt.build_isf import build_isf, sample_like
@@ -204,3 +206,17 @@ def test_centroids_and_isf_decode_once_and_agree_with_the_two_stages(runs, tmp_p
         for name in ("T.npy", "scales.npy"):
             assert np.array_equal(np.load(out / "isf" / name), np.load(root / "cell" / name)), (workers, name)
         assert sorted(p.name for p in out.iterdir()) == ["isf", "spots"]
+
+
+@given(n=st.integers(0, 400), size=st.integers(1, 40))
+@settings(max_examples=200, deadline=None)
+def test_chunks_cover_every_beam_once_in_order_with_small_ones_last(n, size):
+    from ilt.frames import chunks
+
+    parts = chunks(list(range(n)), size)
+    assert [b for part in parts for b in part] == list(range(n))
+    lengths = [len(p) for p in parts]
+    assert all(0 < k <= size for k in lengths)
+    small = max(1, size // 4)
+    assert sum(k < size for k in lengths) <= -(-min(n, 3 * size) // small)  # only the tail is split
+    assert lengths == sorted(lengths, reverse=True)

@@ -204,6 +204,8 @@ def test_bench_writes_figures_with_errors_against_truth(tmp_path):
             assert "colours" in r["refused"] and r["seconds"] is None
             continue
         assert r["refused"] is None
+        # pooled^2 is the energy-weighted mean of the per-bounce errors^2: never above the worst
+        assert 0 <= r["pooled_error"] <= r["bounce_error"] * (1 + 1e-12)
         if r["noise"] == 0:
             bound = 1e-5 if r["solver"] == "mixed" else 1e-12
             assert r["bounce_error"] < bound and r["t1_error"] < bound and r["closure_error"] < 1e-14

@@ -39,6 +39,10 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
     Writes T.npy (unit columns), scales.npy, samples.csv, cells.exr (cell sampling),
     T.png and manifest.json, the directory 'ilt decompose --isf' reads. Flagged beams
     and near-duplicate spots are dropped with a warning and recorded in the manifest.
+
+    Run by hand after 'ilt centroids', this decodes every frame a second time; 'ilt
+    run' runs the two stages on frames decoded once (centroids keeps them for this
+    stage), with the same result bit for bit.
     """
     from ilt.build_isf import build_isf
 

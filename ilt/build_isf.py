@@ -92,14 +92,15 @@ def _column_chunk(beams, files, shape, sampler, m, consume=False):
 
     sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
     the (m,) flat pixel indices of the samples (point sampling). ``consume``: the files
-    are scratch copies (:func:`ilt.frames.cached_frame`), removed once read."""
+    are scratch copies (:func:`ilt.frames.cached_frame`, ``.npy``), removed once read;
+    EXR frames are never removed."""
     out = np.empty((m, len(files)))
     frame = np.empty(shape)  # one float64 buffer for the chunk: the product reads it as is
     operator = _cached_operator(sampler, m) if isinstance(sampler, (str, Path)) else None
     for k, path in enumerate(files):
         load_frame(path, shape, out=frame)
         out[:, k] = integrate_with(frame, operator) if operator is not None else frame.ravel()[sampler]
-        if consume:
+        if consume and Path(path).suffix == ".npy":
             os.unlink(path)
     return out
 
@@ -178,7 +179,10 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                       attributes={"ilt:quantity": "row of T per pixel, -1 outside every cell",
                                   **hdr.mapping.attributes()})
             sampler = str(tmp / CELLS_FILE)
-        source = (lambda b: cached_frame(frame_cache, b)) if frame_cache is not None else (lambda b: hdr.files[b])
+        def source(b):  # a kept frame when there is one (the centroids pass may have run out of disk)
+            kept = cached_frame(frame_cache, b) if frame_cache is not None else None
+            return kept if kept is not None and kept.exists() else hdr.files[b]
+
         tasks = [(c, [source(b) for b in c], hdr.frame_shape, sampler, m, frame_cache is not None)
                  for c in chunks(plan, chunk)]
         raw = np.empty((m, m))

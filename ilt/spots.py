@@ -416,9 +416,22 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, frame
         grid_params = _grid_parameters(params, own, saturation)
         spots.append(_to_full_frame(find_spot(frame, grid_params), own))
         total += frame
-        if frame_cache is not None:
-            np.save(cached_frame(frame_cache, beam), frame)
+        if frame_cache is not None and not _keep_frame(cached_frame(frame_cache, beam), frame):
+            frame_cache = None  # (the disk is full: the rest of the chunk is decoded again by build-isf)
     return spots, total, mapping  # float32: half the bytes back to the caller
+
+
+def _keep_frame(path: Path, frame: np.ndarray) -> bool:
+    """Save a decoded frame for build-isf; False (with a warning, nothing left behind)
+    when it cannot be written: build-isf then reads that beam's EXR again."""
+    try:
+        np.save(path, frame)
+        return True
+    except OSError as exc:
+        path.unlink(missing_ok=True)
+        log.warning("%s: cannot keep the decoded frame (%s); build-isf will decode it again",
+                    path, exc.strerror or exc)
+        return False
 
 
 def read_exr_frame(path, dark):

@@ -220,3 +220,34 @@ def test_chunks_cover_every_beam_once_in_order_with_small_ones_last(n, size):
     small = max(1, size // 4)
     assert sum(k < size for k in lengths) <= -(-min(n, 3 * size) // small)  # only the tail is split
     assert lengths == sorted(lengths, reverse=True)
+
+
+def test_centroids_and_isf_when_the_disk_fills_while_keeping_frames(runs, tmp_path, monkeypatch, caplog):
+    """Frames that cannot be kept (disk full) are decoded again by build-isf: the same T,
+    a warning naming the file, no partial scratch file, and no EXR frame ever removed."""
+    import errno
+    import logging
+    from pathlib import Path
+
+    import ilt.spots
+    from ilt.build_isf import centroids_and_isf
+
+    root, sim = runs[16]
+    frames = sorted(p.name for p in (sim / "hdr").iterdir())
+    real_save = np.save
+
+    def save(path, array, **kwargs):  # the scratch copies of beams 10 and after fail
+        if isinstance(path, Path) and path.parent.name.startswith(".frames-") and int(path.stem[5:]) >= 10:
+            path.write_bytes(b"partial")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_save(path, array, **kwargs)
+
+    monkeypatch.setattr(ilt.spots.np, "save", save)
+    with caplog.at_level(logging.WARNING, logger="ilt.spots"):
+        centroids_and_isf(sim / "hdr", tmp_path / "spots", tmp_path / "isf", workers=1)
+    assert any("No space left on device" in r.message and "build-isf will decode it again" in r.message
+               for r in caplog.records)
+    for name in ("T.npy", "scales.npy"):
+        assert np.array_equal(np.load(tmp_path / "isf" / name), np.load(root / "cell" / name)), name
+    assert sorted(p.name for p in (sim / "hdr").iterdir()) == frames
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["isf", "spots"]

@@ -112,3 +112,32 @@ def test_spots_csv_round_trip(tmp_path):
     beams, back = read_spots(tmp_path / "spots.csv")
     assert beams == [0, 3] and back[0].x == 1.25 and back[1].flags == {"none": 1.5}
     assert parse_flags(format_flags({"multiple": 0.25, "outside": 0.0})) == {"multiple": 0.25, "outside": 0.0}
+
+
+@pytest.mark.parametrize("shape", [(480, 640), (487, 650), (40, 30), (7, 5)])
+def test_background_at_one_pixel_is_the_drawn_map(shape):
+    """The background read at the peak (for the amplitude) without drawing the map
+    equals the map OpenCV draws, at every pixel, tiled by blocks or not."""
+    from ilt.spots import _background_at, _background_grid, _background_map
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    frame = (1 + 0.5 * np.sin(xx / 37.0) * np.cos(yy / 23.0) + rng.normal(0, 0.01, shape)).astype(np.float32)
+    grid, _ = _background_grid(frame)
+    drawn = _background_map(grid, shape)
+    at = np.array([[_background_at(grid, shape, y, x) for x in range(shape[1])] for y in range(shape[0])])
+    np.testing.assert_allclose(at, drawn, rtol=1e-5, atol=0)
+
+
+@pytest.mark.parametrize("shape", [(12, 16), (5, 3), (7, 7), (1, 9), (12, 2), (4, 4)])
+def test_median_helpers_are_numpys_and_scipys(shape):
+    from scipy.ndimage import median_filter
+
+    from ilt.spots import _median, _median_filter
+
+    rng = np.random.default_rng(4)
+    grid = rng.random(shape).astype(np.float32)
+    ky, kx = min(7, shape[0]), min(7, shape[1])
+    assert np.array_equal(_median_filter(grid, ky, kx), median_filter(grid, size=(ky, kx), mode="nearest"))
+    for a in (grid.ravel(), grid.ravel()[1:], grid):
+        assert np.array_equal(_median(a), np.median(a, axis=-1))

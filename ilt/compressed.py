@@ -80,8 +80,9 @@ def low_rank(block: np.ndarray, atol: float, rng: np.random.Generator, step: int
     Alg. 4.2, one power iteration per pass of ``step`` columns, on the block less its
     captured range). It stops when
 
-    - the a-posteriori bound ``10 sqrt(2/pi) max_i ||(I - Q Q^T) B w_i||`` over 8 probes
-      is below ``atol`` (the tail is below the tolerance: exact T), or
+    - the a-posteriori bound ``10 sqrt(2/pi) max_i ||(I - Q Q^T) B w_i||`` over the
+      ``step`` Gaussian probes w_i that start the next pass is below ``atol`` (the
+      tail is below the tolerance: exact T), or
     - the directions a pass added carry at most ``atol`` of the block,
       ``||Y^T B||_2 <= atol``: after a power iteration they are the top of what is
       left, so the rest lies below the tolerance. A noisy block's range finder
@@ -92,12 +93,12 @@ def low_rank(block: np.ndarray, atol: float, rng: np.random.Generator, step: int
     limit = min(p, q)
     basis, projected = np.zeros((p, 0)), np.zeros((0, q))  # Q and Q^T B
     bound = 10 * np.sqrt(2 / np.pi)
+    residual = block @ rng.standard_normal((q, min(step, limit)))  # a sample of what the basis misses
     while basis.shape[1] < limit:
         # one power iteration on the part of the block the basis misses: projecting
         # before each normalisation keeps directions far below the largest singular
         # value (squared by the iteration) above rounding
-        y = block @ rng.standard_normal((q, min(step, limit - basis.shape[1])))
-        y = np.linalg.qr(y - basis @ (basis.T @ y))[0]
+        y = np.linalg.qr(residual[:, :limit - basis.shape[1]])[0]
         y = block @ np.linalg.qr(block.T @ y)[0]
         y -= basis @ (basis.T @ y)
         # Householder QR of the whole basis keeps it orthonormal even when the new
@@ -106,11 +107,13 @@ def low_rank(block: np.ndarray, atol: float, rng: np.random.Generator, step: int
         y = np.linalg.qr(np.hstack([basis, y]))[0][:, basis.shape[1]:]
         new = y.T @ block
         basis, projected = np.hstack([basis, y]), np.vstack([projected, new])
-        if np.linalg.norm(new, 2) <= atol:
+        if np.linalg.norm(new, 2) <= atol or basis.shape[1] >= limit:
             break
-        probe = block @ rng.standard_normal((q, 8))
-        probe -= basis @ (basis.T @ probe)
-        if bound * np.linalg.norm(probe, axis=0).max() <= atol:
+        # the next pass's sample is also the a-posteriori probe (``step`` Gaussian
+        # probes; a separate probe cost one more pass over the block)
+        residual = block @ rng.standard_normal((q, step))
+        residual -= basis @ (basis.T @ residual)
+        if bound * np.linalg.norm(residual, axis=0).max() <= atol:
             break
     u, s, vt = np.linalg.svd(projected, full_matrices=False)
     kept = int(np.sum(s > atol))

@@ -179,23 +179,22 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
     isf_params = {k: v for k, v in b.items() if k != "workers"}
 
     # centroids keeps every decoded frame for build-isf (ilt.frames.cached_frame), so a
-    # run decodes each EXR once; only frames kept by this run are ever read back
+    # run decodes each EXR once. Only frames kept by this run are ever read back:
+    # run_pipeline removes the directory before the first stage and after the last, and
+    # a failed centroids stage ends the run before build-isf
     scratch = ws.root / SCRATCH_DIR
-    kept = {"frames": False}
 
     def make_centroids():
         _remove_scratch(ws)
         scratch.mkdir(parents=True)
         run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params), workers=c["workers"], force=True,
                       frame_cache=scratch)
-        kept["frames"] = True
 
     def make_build_isf():
         try:
             build_isf(d["merge"], d["centroids"], d["build-isf"], workers=b["workers"], force=True,
-                      frame_cache=scratch if kept["frames"] else None, **isf_params)
+                      frame_cache=scratch if scratch.is_dir() else None, **isf_params)
         finally:
-            kept["frames"] = False
             _remove_scratch(ws)
 
     def make_decompose():

@@ -23,8 +23,8 @@ from scipy.spatial import cKDTree
 from ilt.cells import cell_operator, integrate_with, voronoi_cells
 from ilt.frames import (
     FrameError,
+    FrameScratch,
     beam_executor,
-    cached_frame,
     chunks,
     load_frame,
     open_hdr_directory,
@@ -87,21 +87,28 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float) -> n
     return frame_sum > fraction * np.median(frame_sum[rows, cols])
 
 
-def _column_chunk(beams, files, shape, sampler, m, consume=False):
+def _column_chunk(beams, files, shape, sampler, m, scratch=None):
     """Worker: one column of raw T per frame, (m, len(beams)) float64.
 
     sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
-    the (m,) flat pixel indices of the samples (point sampling). ``consume``: the files
-    are scratch copies (:func:`ilt.frames.cached_frame`, ``.npy``), removed once read;
-    EXR frames are never removed."""
+    the (m,) flat pixel indices of the samples (point sampling). files: each beam's EXR,
+    or None for a beam whose frame ``scratch`` (:class:`ilt.frames.FrameScratch`) keeps.
+    """
     out = np.empty((m, len(files)))
     frame = np.empty(shape)  # one float64 buffer for the chunk: the product reads it as is
+    kept = np.empty(shape, np.float32) if scratch is not None else None
     operator = _cached_operator(sampler, m) if isinstance(sampler, (str, Path)) else None
-    for k, path in enumerate(files):
-        load_frame(path, shape, out=frame)
-        out[:, k] = integrate_with(frame, operator) if operator is not None else frame.ravel()[sampler]
-        if consume and Path(path).suffix == ".npy":
-            os.unlink(path)
+    fd = scratch.open() if scratch is not None and None in files else None
+    try:
+        for k, (beam, path) in enumerate(zip(beams, files)):
+            if path is None:
+                np.copyto(frame, scratch.read(fd, beam, kept))
+            else:
+                load_frame(path, shape, out=frame)
+            out[:, k] = integrate_with(frame, operator) if operator is not None else frame.ravel()[sampler]
+    finally:
+        if fd is not None:
+            os.close(fd)
     return out
 
 
@@ -130,9 +137,10 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     full-frame pixels), cells.exr ((H, W) row of T per pixel of the frame grid, -1
     outside, with the grid's pixel mapping; cell sampling only), T.png and
     manifest.json (plan layout, frame shape, pixel mapping, kept beams, every drop with
-    its reason). ``frame_cache``: frames kept by a preceding centroids run over the same
-    HDR directory (:func:`centroids_and_isf`), read instead of the EXR files and removed
-    as they are read (scratch copies: each is used once).
+    its reason). ``frame_cache``: the scratch directory in which a preceding centroids
+    run over the same HDR directory kept its decoded frames (:func:`centroids_and_isf`,
+    :class:`ilt.frames.FrameScratch`); those it recorded are read instead of the EXR
+    files. The caller removes the directory.
     ``min_separation`` is in full-frame pixels; ``max_cell_radius`` in
     frame-grid pixels, by default 2 x the median distance between neighbouring kept spots.
     """
@@ -179,12 +187,11 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                       attributes={"ilt:quantity": "row of T per pixel, -1 outside every cell",
                                   **hdr.mapping.attributes()})
             sampler = str(tmp / CELLS_FILE)
-        def source(b):  # a kept frame when there is one (the centroids pass may have run out of disk)
-            kept = cached_frame(frame_cache, b) if frame_cache is not None else None
-            return kept if kept is not None and kept.exists() else hdr.files[b]
-
-        tasks = [(c, [source(b) for b in c], hdr.frame_shape, sampler, m, frame_cache is not None)
-                 for c in chunks(plan, chunk)]
+        # a frame the centroids pass kept when there is one (it may have run out of disk)
+        scratch = FrameScratch(Path(frame_cache), hdr.frame_shape) if frame_cache is not None else None
+        kept = scratch.kept() if scratch is not None else frozenset()
+        tasks = [(c, [None if b in kept else hdr.files[b] for b in c], hdr.frame_shape, sampler, m,
+                  scratch if kept else None) for c in chunks(plan, chunk)]
         raw = np.empty((m, m))
         done = 0
         with beam_executor(executor, workers) as ex:
@@ -214,9 +221,10 @@ def centroids_and_isf(hdr_dir: str | os.PathLike, spots_out: str | os.PathLike, 
                       params=None, dark=None, executor=None, workers: int | None = None, progress=None,
                       force: bool = False, **options) -> tuple[dict, dict]:
     """``ilt centroids`` then ``ilt build-isf`` on one HDR directory, decoding every EXR
-    once: the centroids pass keeps each decoded frame as raw ``.npy`` in a scratch
-    directory beside ``isf_out`` (m x H x W x 4 bytes of disk, removed at the end;
-    memory still holds a few frames per worker), which build-isf reads back. With a
+    once: the centroids pass keeps each decoded frame (raw float32,
+    :class:`ilt.frames.FrameScratch`) in a scratch directory beside ``isf_out``
+    (m x H x W x 4 bytes of disk, removed at the end; memory still holds a few frames
+    per worker), which build-isf reads back. With a
     ``dark`` frame (subtracted for centroids only) the frames are read twice.
     ``options``: :func:`build_isf`'s. Returns both stages' summaries.
     """

@@ -211,28 +211,80 @@ def read_frame_with_mapping(path: str | os.PathLike,
     return image, PixelMapping.from_attributes(attrs, path)
 
 
-def cached_frame(cache: str | os.PathLike, beam: int) -> Path:
-    """Where a combined centroids + build-isf run keeps beam ``beam``'s decoded frame
-    (raw float32 ``.npy``: reading it back costs a copy from the page cache, not a
-    second EXR decode)."""
-    return Path(cache) / f"beam-{beam:05d}.npy"
+@dataclass(frozen=True)
+class FrameScratch:
+    """Decoded frames kept between two passes over an HDR directory (a combined centroids
+    + build-isf run decodes every EXR once): one raw float32 file in ``directory``,
+    beam b's (H, W) frame at byte offset b H W 4, written by the first pass's workers
+    and read back by the second's. Reading a frame back costs a copy from the page
+    cache, not a second EXR decode; one file, written and read in place, costs less
+    than a file per frame (no create, header or unlink per frame).
+
+    Which frames are there is recorded by the process that ran the first pass
+    (:meth:`record`, after every worker finished); a frame that could not be written
+    (the disk is full) is left out of the record and decoded again. Frames not in the
+    record are never read. The directory and the file are removed by whoever made the
+    directory (disk: m H W 4 bytes while both passes run).
+    """
+
+    directory: Path
+    shape: tuple[int, int]
+
+    FRAMES = "frames.f32"
+    RECORD = "kept.json"
+
+    @property
+    def path(self) -> Path:
+        return Path(self.directory) / self.FRAMES
+
+    @property
+    def frame_bytes(self) -> int:
+        return self.shape[0] * self.shape[1] * 4
+
+    def open(self, write: bool = False) -> int:
+        """A file descriptor on the frames file (created when writing); close it with os.close."""
+        return os.open(self.path, (os.O_WRONLY | os.O_CREAT) if write else os.O_RDONLY, 0o600)
+
+    def keep(self, fd: int, beam: int, frame: np.ndarray) -> None:
+        """Write beam ``beam``'s frame; raises OSError (ENOSPC: the disk is full)."""
+        if frame.shape != tuple(self.shape):
+            raise FrameError(f"beam {beam}: frame of {frame.shape[1]} x {frame.shape[0]} pixels, "
+                             f"the scan's are {self.shape[1]} x {self.shape[0]}")
+        data = memoryview(np.ascontiguousarray(frame, dtype=np.float32)).cast("B")
+        offset, done = beam * self.frame_bytes, 0
+        while done < len(data):
+            done += os.pwrite(fd, data[done:], offset + done)
+
+    def read(self, fd: int, beam: int, out: np.ndarray) -> np.ndarray:
+        """Beam ``beam``'s frame into ``out`` ((H, W) float32)."""
+        got = os.preadv(fd, [out], beam * self.frame_bytes)
+        if got != self.frame_bytes:
+            raise FrameError(f"{self.path}: beam {beam}: {got} of {self.frame_bytes} bytes")
+        return out
+
+    def record(self, beams: Iterable[int]) -> None:
+        """Record (atomically) that these beams' frames were written in full."""
+        from ilt.manifest import write_json
+
+        write_json(Path(self.directory) / self.RECORD, {"shape": list(self.shape), "beams": sorted(beams)})
+
+    def kept(self) -> frozenset[int]:
+        """The beams recorded as kept; none when there is no record or it is for frames of
+        another size."""
+        try:
+            record = json.loads((Path(self.directory) / self.RECORD).read_text())
+        except (OSError, json.JSONDecodeError):
+            return frozenset()
+        if tuple(record.get("shape", ())) != tuple(self.shape) or not self.path.exists():
+            return frozenset()
+        return frozenset(int(b) for b in record.get("beams", ()))
 
 
 def load_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None,
                out: np.ndarray | None = None) -> np.ndarray:
-    """:func:`read_frame`, or a frame kept by :func:`cached_frame` (``.npy``).
-
-    ``out``: an array of the frame's shape to copy the frame into (converting its dtype)
-    and return, so that a loop over frames reuses one buffer (a kept frame is then read
-    through a memory map, with no frame-sized temporary).
-    """
-    if Path(path).suffix == ".npy":
-        frame = np.load(path, mmap_mode=None if out is None else "r", allow_pickle=False)
-        if shape is not None and frame.shape != tuple(shape):
-            raise FrameError(f"{path}: frame is {frame.shape[1]} x {frame.shape[0]} pixels, "
-                             f"expected {shape[1]} x {shape[0]}")
-    else:
-        frame = read_frame(path, shape)
+    """:func:`read_frame`; with ``out`` (an array of the frame's shape) copied into it,
+    converting its dtype, so that a loop over frames reuses one buffer."""
+    frame = read_frame(path, shape)
     if out is None:
         return frame
     np.copyto(out, frame)

@@ -178,7 +178,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
         spot_params["roi"] = tuple(float(v) for v in spot_params["roi"])
     isf_params = {k: v for k, v in b.items() if k != "workers"}
 
-    # centroids keeps every decoded frame for build-isf (ilt.frames.cached_frame), so a
+    # centroids keeps every decoded frame for build-isf (ilt.frames.FrameScratch), so a
     # run decodes each EXR once. Only frames kept by this run are ever read back:
     # run_pipeline removes the directory before the first stage and after the last, and
     # a failed centroids stage ends the run before build-isf

@@ -1,6 +1,7 @@
 """centroids -> build-isf -> decompose end to end on rendered frames, against the truth."""
 
 import json
+import os
 import shutil
 from concurrent.futures import ThreadPoolExecutor
 
@@ -223,31 +224,71 @@ def test_chunks_cover_every_beam_once_in_order_with_small_ones_last(n, size):
 
 
 def test_centroids_and_isf_when_the_disk_fills_while_keeping_frames(runs, tmp_path, monkeypatch, caplog):
-    """Frames that cannot be kept (disk full) are decoded again by build-isf: the same T,
-    a warning naming the file, no partial scratch file, and no EXR frame ever removed."""
+    """Frames that cannot be kept (disk full, after part of a frame was written) are left
+    out of the scratch's record and decoded again by build-isf: the same T, a warning
+    naming the file and beam, and no EXR frame ever removed."""
     import errno
     import logging
-    from pathlib import Path
 
-    import ilt.spots
+    import ilt.frames
     from ilt.build_isf import centroids_and_isf
 
     root, sim = runs[16]
     frames = sorted(p.name for p in (sim / "hdr").iterdir())
-    real_save = np.save
+    real_keep = ilt.frames.FrameScratch.keep
+    recorded = []
 
-    def save(path, array, **kwargs):  # the scratch copies of beams 10 and after fail
-        if isinstance(path, Path) and path.parent.name.startswith(".frames-") and int(path.stem[5:]) >= 10:
-            path.write_bytes(b"partial")
+    def keep(self, fd, beam, frame):  # beams 10 and after fail half-way
+        if beam >= 10:
+            os.pwrite(fd, b"\xff" * (frame.nbytes // 2), beam * self.frame_bytes)
             raise OSError(errno.ENOSPC, "No space left on device")
-        real_save(path, array, **kwargs)
+        real_keep(self, fd, beam, frame)
 
-    monkeypatch.setattr(ilt.spots.np, "save", save)
+    real_kept = ilt.frames.FrameScratch.kept
+
+    def kept(self):
+        recorded.append(real_kept(self))
+        return recorded[-1]
+
+    monkeypatch.setattr(ilt.frames.FrameScratch, "keep", keep)
+    monkeypatch.setattr(ilt.frames.FrameScratch, "kept", kept)
     with caplog.at_level(logging.WARNING, logger="ilt.spots"):
         centroids_and_isf(sim / "hdr", tmp_path / "spots", tmp_path / "isf", workers=1)
-    assert any("No space left on device" in r.message and "build-isf will decode it again" in r.message
-               for r in caplog.records)
+    assert any("No space left on device" in r.message and "beam 10" in r.message
+               and "build-isf will decode it again" in r.message for r in caplog.records)
+    assert recorded == [frozenset(range(10))]
     for name in ("T.npy", "scales.npy"):
         assert np.array_equal(np.load(tmp_path / "isf" / name), np.load(root / "cell" / name)), name
     assert sorted(p.name for p in (sim / "hdr").iterdir()) == frames
     assert sorted(p.name for p in tmp_path.iterdir()) == ["isf", "spots"]
+
+
+def test_frame_scratch_keeps_frames_bit_for_bit_and_trusts_only_its_record(tmp_path):
+    """Frames written in any order read back identical; only recorded beams of the
+    recorded frame size count as kept; a frame of another size is refused."""
+    from ilt.frames import FrameError, FrameScratch
+
+    rng = np.random.default_rng(4)
+    frames = {b: rng.normal(size=(5, 7)).astype(np.float32) for b in (3, 0, 6)}
+    scratch = FrameScratch(tmp_path, (5, 7))
+    assert scratch.kept() == frozenset()  # nothing recorded yet
+    fd = scratch.open(write=True)
+    try:
+        for b, f in frames.items():
+            scratch.keep(fd, b, f)
+        with pytest.raises(FrameError, match="beam 2: frame of 7 x 6 pixels"):
+            scratch.keep(fd, 2, np.zeros((6, 7), np.float32))
+    finally:
+        os.close(fd)
+    scratch.record([6, 0, 3])
+    assert scratch.kept() == frozenset({0, 3, 6})
+    assert FrameScratch(tmp_path, (7, 5)).kept() == frozenset()  # another size: not these frames
+    fd = scratch.open()
+    try:
+        out = np.empty((5, 7), np.float32)
+        for b, f in frames.items():
+            assert np.array_equal(scratch.read(fd, b, out), f)
+        with pytest.raises(FrameError, match="beam 9"):
+            scratch.read(fd, 9, out)  # past the end of the file
+    finally:
+        os.close(fd)

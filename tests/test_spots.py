@@ -115,18 +115,24 @@ def test_spots_csv_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize("shape", [(480, 640), (487, 650), (40, 30), (7, 5)])
-def test_background_at_one_pixel_is_the_drawn_map(shape):
-    """The background read at the peak (for the amplitude) without drawing the map
-    equals the map OpenCV draws, at every pixel, tiled by blocks or not."""
-    from ilt.spots import _background_at, _background_grid, _background_map
+def test_background_in_a_window_or_at_one_pixel_is_the_drawn_map(shape):
+    """The background read in a window (the spot's threshold) or at the peak (its
+    amplitude) without drawing the map equals the map OpenCV draws, at every pixel,
+    tiled by blocks or not."""
+    from ilt.spots import _background_at, _background_grid, _background_map, _background_window
 
     rng = np.random.default_rng(3)
     yy, xx = np.mgrid[:shape[0], :shape[1]]
     frame = (1 + 0.5 * np.sin(xx / 37.0) * np.cos(yy / 23.0) + rng.normal(0, 0.01, shape)).astype(np.float32)
     grid, _ = _background_grid(frame)
     drawn = _background_map(grid, shape)
-    at = np.array([[_background_at(grid, shape, y, x) for x in range(shape[1])] for y in range(shape[0])])
-    np.testing.assert_allclose(at, drawn, rtol=1e-5, atol=0)
+    whole = _background_window(grid, shape, slice(0, shape[0]), slice(0, shape[1]))
+    np.testing.assert_allclose(whole, drawn, rtol=1e-5, atol=0)
+    for _ in range(20):
+        (y0, y1), (x0, x1) = (np.sort(rng.choice(n + 1, 2, replace=False)) for n in shape)
+        assert np.array_equal(_background_window(grid, shape, slice(y0, y1), slice(x0, x1)), whole[y0:y1, x0:x1])
+        y, x = rng.integers(shape[0]), rng.integers(shape[1])
+        assert _background_at(grid, shape, y, x) == whole[y, x]
 
 
 @pytest.mark.parametrize("shape", [(12, 16), (5, 3), (7, 7), (1, 9), (12, 2), (4, 4)])

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -140,7 +141,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     its reason). ``frame_cache``: the scratch directory in which a preceding centroids
     run over the same HDR directory kept its decoded frames (:func:`centroids_and_isf`,
     :class:`ilt.frames.FrameScratch`); those it recorded are read instead of the EXR
-    files. The caller removes the directory.
+    files, and the frames file is removed once read. The caller removes the directory.
     ``min_separation`` is in full-frame pixels; ``max_cell_radius`` in
     frame-grid pixels, by default 2 x the median distance between neighbouring kept spots.
     """
@@ -198,6 +199,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
                 raw[:, done:done + block.shape[1]] = block
                 done += block.shape[1]
+        if kept:  # every kept frame is read: free its disk while the outputs are written
+            _in_background(scratch.path.unlink, missing_ok=True)
         scales = np.linalg.norm(raw, axis=0)
         zero = np.flatnonzero(~(scales > 0))
         if zero.size:
@@ -215,6 +218,12 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         inputs.update(read_manifest(spots_dir).get("inputs", {}) if (spots_dir / "manifest.json").exists() else {})
         write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields})
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
+
+
+def _in_background(function, **kwargs) -> None:
+    """Run ``function(**kwargs)`` in a daemon thread and go on (for a system call that
+    releases the GIL: removing a file of m frames takes the kernel some 0.1 s)."""
+    threading.Thread(target=function, kwargs=kwargs, daemon=True).start()
 
 
 def centroids_and_isf(hdr_dir: str | os.PathLike, spots_out: str | os.PathLike, isf_out: str | os.PathLike,

@@ -273,8 +273,15 @@ def _background_map(grid: np.ndarray, shape: tuple[int, int], out: np.ndarray | 
 
 
 def _background_at(grid: np.ndarray, shape: tuple[int, int], y: int, x: int) -> float:
-    """:func:`_background_map` at one pixel, without drawing the map."""
-    return float(_background_window(grid, shape, slice(y, y + 1), slice(x, x + 1))[0, 0])
+    """:func:`_background_map` at one pixel, without drawing the map (the same value as
+    :func:`_background_window` there)."""
+    if grid.size == 1:
+        return float(grid.flat[0])
+    (y0, y1, fy), (x0, x1, fx) = _axis_weights(shape, grid.shape)
+    wy, wx = float(fy[y]), float(fx[x])
+    upper = (1 - wx) * float(grid[y0[y], x0[x]]) + wx * float(grid[y0[y], x1[x]])
+    lower = (1 - wx) * float(grid[y1[y], x0[x]]) + wx * float(grid[y1[y], x1[x]])
+    return (1 - wy) * upper + wy * lower
 
 
 def _background_window(grid: np.ndarray, shape: tuple[int, int], rows: slice, cols: slice) -> np.ndarray:
@@ -282,20 +289,28 @@ def _background_window(grid: np.ndarray, shape: tuple[int, int], rows: slice, co
     (h, w) float64, without drawing the map (the same bilinear weights)."""
     if grid.size == 1:
         return np.full((rows.stop - rows.start, cols.stop - cols.start), float(grid.flat[0]))
-    block = _background_block(shape)
-
-    def weights(index: np.ndarray, n: int):
-        at = (index + 0.5) / block - 0.5
-        low = np.floor(at)
-        return np.clip(low, 0, n - 1).astype(int), np.clip(low + 1, 0, n - 1).astype(int), at - low
-
-    y0, y1, fy = weights(np.arange(rows.start, rows.stop), grid.shape[0])
-    x0, x1, fx = weights(np.arange(cols.start, cols.stop), grid.shape[1])
+    (y0, y1, fy), (x0, x1, fx) = _axis_weights(shape, grid.shape)
+    y0, y1, fy, x0, x1, fx = y0[rows], y1[rows], fy[rows, None], x0[cols], x1[cols], fx[cols]
     g = grid.astype(np.float64)
     upper, lower = g[y0], g[y1]
     upper = (1 - fx) * upper[:, x0] + fx * upper[:, x1]
     lower = (1 - fx) * lower[:, x0] + fx * lower[:, x1]
-    return (1 - fy)[:, None] * upper + fy[:, None] * lower
+    return (1 - fy) * upper + fy * lower
+
+
+@functools.lru_cache(maxsize=8)
+def _axis_weights(shape: tuple[int, int], grid_shape: tuple[int, int]):
+    """Per frame axis, the bilinear interpolation of :func:`_background_map`: for every
+    pixel the two grid cells it lies between (edges replicated) and its weight on the
+    second."""
+    block = _background_block(shape)
+    out = []
+    for pixels, cells in zip(shape, grid_shape):
+        at = (np.arange(pixels) + 0.5) / block - 0.5
+        low = np.floor(at)
+        out.append((np.clip(low, 0, cells - 1).astype(np.intp), np.clip(low + 1, 0, cells - 1).astype(np.intp),
+                    at - low))
+    return tuple(out)
 
 
 #: half-size of the first window in which the spot's component is labelled

@@ -78,7 +78,7 @@ def _scipy(T, photos, n_bounces):
 
 def _solver(name, layout=None, noise=0.0):
     def run(T, photos, n_bounces):
-        if name == "regularised":  # denoise T (discrepancy principle), then dense
+        if name == "regularised":  # denoise T (edge-aware filter, discrepancy principle), then dense
             T = regularise_isf(T, layout, noise)[0]
         if name == "compressed":  # to the noise floor, as `ilt decompose --noise` would
             op, _ = build_operator(T, name, noise, points=grid_points(layout, T.shape[0]))
@@ -268,7 +268,7 @@ def rows_json(rows: list[BenchRow]) -> list[dict]:
 
 def _plot_bias_variance(ax, rows: list[BiasVarianceRow]) -> None:
     """Bias (solid) and spread (dashed) of the bounces against the filter width, one
-    colour per case; a ring marks the width the discrepancy principle picked most."""
+    colour per case; a ring marks the width regularise_isf applied most."""
     cases = list(dict.fromkeys((r.scene, r.m, r.noise) for r in rows))
     for k, case in enumerate(cases):
         pts = sorted((r for r in rows if (r.scene, r.m, r.noise) == case), key=lambda r: r.width)
@@ -280,6 +280,6 @@ def _plot_bias_variance(ax, rows: list[BiasVarianceRow]) -> None:
         pick = max(pts, key=lambda r: r.chosen)
         ax.semilogy([pick.width], [pick.pooled_error], "o", mfc="none", mec=colour, ms=10)
     ax.set(xlabel="filter width (layout steps; 0 = plain inversion)", ylabel="relative to the true bounces",
-           title="bias and spread (ring: discrepancy principle)")
+           title="bias and spread (ring: the width applied)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)

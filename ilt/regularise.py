@@ -2,55 +2,112 @@
 
 T is well conditioned (cond 3-4 for the scenes here), so plain inversion does not
 amplify noise much: the error of ``Cn T`` is the noise in T carried through. What
-helps is removing noise from T itself, using what light transport guarantees:
-the indirect light a beam produces varies smoothly between neighbouring sample
-pixels, and between neighbouring beams. ``smooth_isf`` filters the off-diagonal
-entries of the unit-column T with a Gaussian of width w (in plan-layout steps)
-along both the pixel and the beam index (normalised convolution that leaves the
-directly lit entry out and puts it back untouched). ``regularise_isf`` picks w by
-Morozov's discrepancy principle: the widest filter whose change to T is no larger
-than the noise, ``||T_w - T||_F <= sigma sqrt(m (m - 1))``. Larger w lowers the
-variance and raises the bias (edges between facets are blurred); the discrepancy
-principle stops where the change would exceed what noise can explain.
+helps is removing noise from T itself, using what light transport guarantees: the
+indirect light a beam produces varies smoothly between neighbouring sample pixels,
+and between neighbouring beams, except across the edge between two facets (where
+the light one sees can jump: points on one plane exchange no light at all).
+
+``smooth_isf`` filters the off-diagonal entries of the unit-column T along the pixel
+index and then the beam index, in the plan layout, by an edge-aware diffusion: each
+pass averages an entry with its four layout neighbours, weighted by how alike the two
+neighbours' whole rows (pixels) or columns (beams) of T are. Two neighbours whose rows
+differ by no more than the noise explains (``||T_p - T_q||^2 <= 2 m sigma^2``) are
+averaged fully; the weight falls as ``exp(-excess / (2 m sigma^2 kappa))`` past that, so
+a facet edge, where the rows differ by far more, is left sharp (a Gaussian filter
+blurred it: its bias near the edges made the direct image T1 20x worse than plain
+inversion at m = 972, sigma = 1e-3). The directly lit entry is left out and put back
+untouched (normalised convolution). ``width`` is the standard deviation of the
+diffusion on a uniform region, in layout steps.
+
+``regularise_isf`` applies the filter at :data:`WIDTH`, measured to lower the error of
+every bounce, the pooled bounces and T1 against plain inversion on the simulated
+scenes for sigma 1e-4 to 1e-2, and keeps it only when its change to T is no larger
+than the noise, ``||T_w - T||_F <= sigma sqrt(m (m - 1))`` (Morozov's discrepancy
+principle, as a guard: a change past it removes more than noise).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from ilt.transport import prepare_isf
 
-#: filter widths tried, in plan-layout steps (0: no filtering)
-WIDTHS = (0.0, 0.25, 0.35, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+#: filter widths of the bias/variance study, in plan-layout steps (0: no filtering)
+WIDTHS = (0.0, 0.25, 0.5, 0.82, 1.0, 1.41, 2.0)
+#: the width regularise_isf applies: two passes of the diffusion (measured: docs/numerics.md)
+WIDTH = 0.82
+#: edge sensitivity: the weight of a neighbour pair falls by e for every kappa x the noise's
+#: expected squared distance that their rows' distance exceeds it by
+KAPPA = 0.25
 
 
-def _smooth_columns(T: np.ndarray, layout: tuple[int, int], width: float) -> np.ndarray:
-    """Filter each column of T as an image in the plan layout, leaving out the diagonal."""
-    m = T.shape[0]
-    idx = np.arange(m)
-    mask = np.ones((m, m))
+def _edge_weights(unit: np.ndarray, layout: tuple[int, int], sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Weights of the layout neighbour pairs along the first index of ``unit`` (m, n):
+    ((rows - 1, cols), (rows, cols - 1)), from the distance of their rows less what the
+    noise explains. The pair's own two columns (their directly lit entries) are left out."""
+    rows, cols = layout
+    n = unit.shape[1]
+    grid = unit.reshape(rows, cols, n)
+    index = np.arange(rows * cols).reshape(rows, cols)
+    expected = 2.0 * (n - 2) * sigma ** 2
+    weights = []
+    for a, b, ia, ib in ((grid[:-1], grid[1:], index[:-1], index[1:]),
+                         (grid[:, :-1], grid[:, 1:], index[:, :-1], index[:, 1:])):
+        diff = a - b
+        d2 = np.einsum("...k,...k->...", diff, diff)
+        for own in (ia, ib):
+            d2 -= np.take_along_axis(diff, own[..., None], axis=-1)[..., 0] ** 2
+        weights.append(np.exp(-np.maximum(d2 - expected, 0.0) / (2.0 * n * sigma ** 2 * KAPPA)))
+    return weights[0], weights[1]
+
+
+def _diffuse(unit: np.ndarray, layout: tuple[int, int], weights, width: float) -> np.ndarray:
+    """Edge-aware diffusion of ``unit`` (m, n) along its first index in the layout, to a
+    standard deviation of ``width`` steps on a uniform region, the diagonal left out."""
+    rows, cols = layout
+    m, n = unit.shape
+    passes = math.ceil(3 * width ** 2)  # each pass at strength <= 0.5 spreads by <= 1/3 step^2
+    strength = width ** 2 / (2 * passes - 4 * width ** 2)  # variance per pass 2s / (1 + 4s)
+    down, right = (strength * w[..., None] for w in weights)
+    idx = np.arange(min(m, n))
+    mask = np.ones((m, n))
     mask[idx, idx] = 0.0
-    shape = (*layout, m)
-    num = gaussian_filter((T * mask).reshape(shape), sigma=(width, width, 0), mode="nearest")
-    den = gaussian_filter(mask.reshape(shape), sigma=(width, width, 0), mode="nearest")
-    out = (num / den).reshape(m, m)
-    out[idx, idx] = T[idx, idx]
+    mask = mask.reshape(rows, cols, n)
+    x = unit.reshape(rows, cols, n) * mask
+    den = mask.copy()  # the normalisation does not change between passes
+    den[:-1] += down * mask[1:]
+    den[1:] += down * mask[:-1]
+    den[:, :-1] += right * mask[:, 1:]
+    den[:, 1:] += right * mask[:, :-1]
+    inside = mask > 0  # (a left-out entry can have den 0: every neighbour's weight underflowed)
+    for _ in range(passes):
+        num = x.copy()
+        num[:-1] += down * x[1:]
+        num[1:] += down * x[:-1]
+        num[:, :-1] += right * x[:, 1:]
+        num[:, 1:] += right * x[:, :-1]
+        x = np.divide(num, den, out=np.zeros_like(num), where=inside)
+    out = x.reshape(m, n)
+    out[idx, idx] = unit[idx, idx]
     return out
 
 
-def smooth_isf(T: np.ndarray, layout: tuple[int, int], width: float) -> np.ndarray:
+def smooth_isf(T: np.ndarray, layout: tuple[int, int], width: float, noise: float) -> np.ndarray:
     """T (m, m) with its off-diagonal entries filtered along pixels and beams.
 
     ``layout`` (rows, cols) is the plan's layout (rows * cols = m); ``width`` is the
-    Gaussian's standard deviation in layout steps. Returns a new float64 array.
+    diffusion's standard deviation in layout steps on a uniform region; ``noise`` is the
+    noise per entry (sigma), which sets what counts as an edge. Returns a new float64
+    array.
     """
     T = np.asarray(T, dtype=np.float64)
-    if width <= 0:
+    if width <= 0 or noise <= 0:
         return T.copy()
-    return _smooth_columns(_smooth_columns(T, layout, width).T, layout, width).T
+    pixels, beams = _edge_weights(T, layout, noise), _edge_weights(T.T, layout, noise)
+    return _diffuse(_diffuse(T, layout, pixels, width).T, layout, beams, width).T
 
 
 @dataclass(frozen=True)
@@ -69,15 +126,18 @@ class Regularisation:
 
     def describe(self) -> str:
         if self.width == 0:
-            return (f"T left as measured: even the narrowest filter changes it by more than the noise "
-                    f"({self.tried[1][1]:.3g} > {self.noise_norm:.3g})" if len(self.tried) > 1 else "T left as measured")
-        return (f"T filtered with width {self.width:g} (layout steps): change {self.change:.3g} <= noise "
+            if len(self.tried) > 1 and self.noise_norm > 0:
+                return (f"T left as measured: the edge-aware filter (width {self.tried[1][0]:g}) changes it by "
+                        f"more than the noise explains ({self.tried[1][1]:.3g} > {self.noise_norm:.3g})")
+            return "T left as measured"
+        return (f"T filtered edge-aware, width {self.width:g} (layout steps): change {self.change:.3g} <= noise "
                 f"{self.noise_norm:.3g} (discrepancy principle)")
 
 
 def regularise_isf(T: np.ndarray, layout: tuple[int, int], noise: float,
-                   widths=WIDTHS) -> tuple[np.ndarray, Regularisation]:
-    """Denoise T by the widest filter the noise allows (Morozov's discrepancy principle).
+                   width: float = WIDTH) -> tuple[np.ndarray, Regularisation]:
+    """Denoise T by the edge-aware filter at ``width``, kept when its change is no more
+    than the noise explains (Morozov's discrepancy principle).
 
     Parameters
     ----------
@@ -85,7 +145,8 @@ def regularise_isf(T: np.ndarray, layout: tuple[int, int], noise: float,
     layout : (rows, cols) of the beam plan.
     noise : sigma of the noise per entry, relative to the unit-column T.
 
-    Returns the filtered unit-column T (m, m) float64 and the :class:`Regularisation`.
+    Returns the filtered (or, refused, the measured) unit-column T (m, m) float64 and
+    the :class:`Regularisation`.
     """
     T, norms = prepare_isf(T)
     unit = T / norms
@@ -93,26 +154,18 @@ def regularise_isf(T: np.ndarray, layout: tuple[int, int], noise: float,
     if layout[0] * layout[1] != m:
         raise ValueError(f"layout {layout} does not hold m = {m} samples")
     noise_norm = noise * np.sqrt(m * (m - 1.0))
-    best, chosen, tried = unit, (0.0, 0.0), [(0.0, 0.0)]
-    for w in sorted(w for w in widths if w > 0):
-        candidate = smooth_isf(unit, layout, w)
-        change = float(np.linalg.norm(candidate - unit))
-        tried.append((w, change))
-        if change > noise_norm:
-            break
-        best, chosen = candidate, (w, change)
-    return best, Regularisation(width=chosen[0], change=chosen[1], noise_norm=float(noise_norm), tried=tried)
+    candidate = smooth_isf(unit, layout, width, noise)
+    change = float(np.linalg.norm(candidate - unit))
+    tried = [(0.0, 0.0), (width, change)]
+    if width > 0 and noise > 0 and change <= noise_norm:
+        return candidate, Regularisation(width=width, change=change, noise_norm=float(noise_norm), tried=tried)
+    return unit, Regularisation(width=0.0, change=0.0, noise_norm=float(noise_norm), tried=tried)
 
 
-def discrepancy_choice(changes: list[tuple[float, float]], noise_norm: float) -> float:
-    """The width :func:`regularise_isf` picks from ``(width, change)`` pairs in
-    increasing width: the widest before the first change the noise cannot explain."""
-    chosen = 0.0
-    for w, change in sorted(changes):
-        if w > 0 and change > noise_norm:
-            break
-        chosen = w
-    return chosen
+def discrepancy_choice(changes: list[tuple[float, float]], noise_norm: float, width: float = WIDTH) -> float:
+    """The width :func:`regularise_isf` picks from ``(width, change)`` pairs: ``width``
+    when its change is no larger than the noise explains, else 0."""
+    return width if any(w == width and change <= noise_norm for w, change in changes) else 0.0
 
 
 @dataclass(frozen=True)
@@ -157,7 +210,7 @@ def bias_variance(T: np.ndarray, layout: tuple[int, int], photos: np.ndarray, tr
     T, norms = prepare_isf(T)
     unit = T / norms
     m = unit.shape[0]
-    widths = sorted({0.0, *widths})
+    widths = sorted({0.0, WIDTH, *widths})
     n_bounces = truth.shape[0]
     noise_norm = sigma * np.sqrt(m * (m - 1.0))
     rng = np.random.default_rng(seed)
@@ -168,7 +221,7 @@ def bias_variance(T: np.ndarray, layout: tuple[int, int], photos: np.ndarray, tr
         noisy /= np.linalg.norm(noisy, axis=0)  # unit columns, as regularise_isf filters them
         changes = []
         for w in widths:
-            filtered = smooth_isf(noisy, layout, w)
+            filtered = smooth_isf(noisy, layout, w, sigma)
             changes.append((w, float(np.linalg.norm(filtered - noisy))))
             estimates[w][k] = bounce_images(build_operator(filtered, "dense")[0], photos, n_bounces).bounces
         chosen[discrepancy_choice(changes, noise_norm)] += 1

@@ -116,24 +116,56 @@ def test_noise_sweep_amplification_is_bounded():
 
 @pytest.mark.parametrize("name, beams", [("m", 128), ("box", 192)])
 def test_regularised_t_beats_plain_under_noise(name, beams):
-    """Denoising T by the discrepancy principle lowers the bounce error for sigma >= 1e-3
-    and leaves a nearly clean T (sigma = 1e-5) practically as measured."""
+    """The edge-aware filter lowers the worst bounce error for sigma >= 1e-3 without
+    raising the direct image's (T1), and leaves a nearly clean T (sigma = 1e-5)
+    practically as measured."""
     from ilt.regularise import regularise_isf
+    from ilt.transport import prepare_isf
 
     scene = make_scene(name, beams=beams)
-    T, _ = scene.isf()
+    T, scale = scene.isf()
+    t1_true = scene.direct / scale
     photos, truth = scene_batch(scene, 4, 4)
     noise = np.random.default_rng(0).normal(size=T.shape)
     for sigma in (1e-5, 1e-3, 1e-2):
-        Tn = T + sigma * noise
-        plain = relative_errors(bounce_images(cancellation_operator(Tn), photos, 4).bounces, truth).max()
+        Tn, norms = prepare_isf(T + sigma * noise)
+        plain_op = cancellation_operator(Tn / norms)   # unit columns, as regularise_isf returns
+        plain = relative_errors(bounce_images(plain_op, photos, 4).bounces, truth).max()
         Tr, info = regularise_isf(Tn, scene.layout, sigma)
         assert info.change <= info.noise_norm
-        reg = relative_errors(bounce_images(cancellation_operator(Tr), photos, 4).bounces, truth).max()
+        op = cancellation_operator(Tr)
+        reg = relative_errors(bounce_images(op, photos, 4).bounces, truth).max()
+        t1_plain, t1_reg = (np.max(np.abs(o.t1 - t1_true) / t1_true) for o in (plain_op, op))
         if sigma >= 1e-3:
-            assert reg < plain, (sigma, reg, plain)
+            assert info.width > 0 and reg < plain, (sigma, reg, plain)
+            assert t1_reg <= 1.05 * t1_plain, (sigma, t1_reg, t1_plain)
         else:
             assert reg <= 1.05 * plain
+
+
+def test_edge_aware_filter_keeps_a_facet_edge():
+    """Two facets that exchange light only with each other (no light within a facet: a
+    block of zeros either side of the diagonal, like coplanar points): the filter
+    removes noise inside each block and leaves the zero blocks at zero, where a
+    filter blind to the edge spreads the other facet's light into them."""
+    from ilt.regularise import smooth_isf
+
+    rows, cols = 16, 8   # facet A: layout rows 0-7, facet B: rows 8-15
+    m = rows * cols
+    facet = np.arange(m) // (m // 2)
+    yy, xx = np.divmod(np.arange(m), cols)
+    smooth = 0.02 * (1 + 0.5 * np.cos(yy[:, None] / 5.0) * np.cos(xx[None, :] / 4.0))
+    T = np.where(facet[:, None] != facet[None, :], smooth, 0.0)
+    T[np.arange(m), np.arange(m)] = 1.0
+    sigma = 2e-3
+    noisy = T + sigma * np.random.default_rng(5).normal(size=T.shape)
+    out = smooth_isf(noisy, (rows, cols), 1.0, sigma)
+    same = (facet[:, None] == facet[None, :]) & ~np.eye(m, dtype=bool)
+    assert np.array_equal(np.diag(out), np.diag(noisy))                   # the direct entries untouched
+    assert abs(out[same].mean()) < 0.05 * T[~same & ~np.eye(m, dtype=bool)].mean()  # no light leaked in
+    assert np.sqrt(np.mean((out - T)[~np.eye(m, dtype=bool)] ** 2)) < 0.6 * sigma  # noise removed
+    blind = smooth_isf(noisy, (rows, cols), 1.0, 1.0)  # noise "1": every neighbour counts as alike
+    assert blind[same].mean() > 10 * abs(out[same].mean())
 
 
 def test_bias_against_variance_of_regularisation():
@@ -158,7 +190,7 @@ def test_bias_against_variance_of_regularisation():
         assert (error[~positive] <= spread[~positive] * (1 + 1e-9)).all()
     plain, widest = rows[0], rows[-1]
     assert plain.pooled_bias < 0.2 * plain.pooled_spread          # noise, not bias, limits plain inversion
-    assert widest.pooled_spread < 0.5 * plain.pooled_spread       # filtering removes most of the spread
+    assert widest.pooled_spread < 0.6 * plain.pooled_spread       # filtering removes much of the spread (edges stop it)
     assert widest.pooled_bias > 2 * plain.pooled_bias             # at the price of bias
     spreads = [r.pooled_spread for r in rows]
     assert all(b <= a * 1.02 for a, b in zip(spreads, spreads[1:]))

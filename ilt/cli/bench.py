@@ -52,7 +52,7 @@ def command(quick, sizes, scenes, noises, solvers, batch, n_bounces, repeats, dr
     against variance: on each scene at the smallest size, DRAWS independent noise
     draws of T, inverted plainly (width 0) and after filtering at each width; bias
     (mean estimate against the truth), spread (the draws about their mean) and error,
-    and how often the discrepancy principle chose each width."""
+    and how often the filter `--regularise` applies passed the discrepancy principle."""
     from ilt import bench
     from ilt.manifest import write_json
     from ilt.solvers import SOLVERS

@@ -39,8 +39,9 @@ from ilt.cli.options import (
                    "entries when it has some); blocks and series treat entries below it as zero, "
                    "compressed compresses T to it.")
 @click.option("--regularise", is_flag=True,
-              help="Denoise T before inverting it: smooth its indirect part along pixels and beams, as much "
-                   "as the noise allows (discrepancy principle); needs the noise level and a full grid plan.")
+              help="Denoise T before inverting it: smooth its indirect part along pixels and beams, edge-aware "
+                   "(neighbours whose light differs by more than the noise are not averaged), kept when the "
+                   "change is within the noise (discrepancy principle); needs the noise level and a full grid plan.")
 @workspace_option
 @force_option
 @json_option

@@ -320,14 +320,8 @@ def beam_executor(executor: Executor | None, workers: int | None) -> Iterator[Ex
         return
     from ilt.workers import process_pool  # (imports the stage modules: not at module level)
 
-    pool = process_pool(workers)
-    try:
+    with process_pool(workers) as pool:
         yield pool
-    finally:
-        # the workers exit on their own once told to (their interpreters' teardown takes
-        # some 0.1 s); this process goes on meanwhile, and joins them at its exit at the
-        # latest. Work not started yet is cancelled (after an error).
-        pool.shutdown(wait=False, cancel_futures=True)
 
 
 def run_chunks(function: Callable, tasks: Iterable[tuple], executor: Executor | None,

@@ -273,15 +273,8 @@ def _background_map(grid: np.ndarray, shape: tuple[int, int], out: np.ndarray | 
 
 
 def _background_at(grid: np.ndarray, shape: tuple[int, int], y: int, x: int) -> float:
-    """:func:`_background_map` at one pixel, without drawing the map (the same value as
-    :func:`_background_window` there)."""
-    if grid.size == 1:
-        return float(grid.flat[0])
-    (y0, y1, fy), (x0, x1, fx) = _axis_weights(shape, grid.shape)
-    wy, wx = float(fy[y]), float(fx[x])
-    upper = (1 - wx) * float(grid[y0[y], x0[x]]) + wx * float(grid[y0[y], x1[x]])
-    lower = (1 - wx) * float(grid[y1[y], x0[x]]) + wx * float(grid[y1[y], x1[x]])
-    return (1 - wy) * upper + wy * lower
+    """:func:`_background_map` at one pixel, without drawing the map."""
+    return float(_background_window(grid, shape, slice(y, y + 1), slice(x, x + 1))[0, 0])
 
 
 def _background_window(grid: np.ndarray, shape: tuple[int, int], rows: slice, cols: slice) -> np.ndarray:

@@ -29,7 +29,6 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import scipy.linalg
 
-from ilt.compressed import grid_points
 from ilt.evaluate import relative_errors
 from ilt.regularise import BiasVariance, regularise_isf
 from ilt.sim import ILLUMINATIONS, make_scene
@@ -76,12 +75,12 @@ def _scipy(T, photos, n_bounces):
     return t1, np.stack(out), r
 
 
-def _solver(name, layout=None, noise=0.0):
+def _solver(name, layout=None, noise=0.0, samples=None):
     def run(T, photos, n_bounces):
         if name == "regularised":  # denoise T (edge-aware filter, discrepancy principle), then dense
             T = regularise_isf(T, layout, noise)[0]
-        if name == "compressed":  # to the noise floor, as `ilt decompose --noise` would
-            op, _ = build_operator(T, name, noise, points=grid_points(layout, T.shape[0]))
+        if name == "compressed":  # to the noise floor, ordered by the sample pixels, as `ilt decompose --noise`
+            op, _ = build_operator(T, name, noise or None, points=samples)
         else:
             op, _ = build_operator(T, "dense" if name == "regularised" else name)
         dec = bounce_images(op, photos, n_bounces)
@@ -135,7 +134,7 @@ def bench_case(scene_name: str, m: int, noise: float = 0.0, solvers=SOLVERS, bat
     for name in ("scipy", *[s for s in solvers if s != "scipy"]):
         if name == "regularised" and noise == 0:
             continue  # nothing to remove
-        fn = _scipy if name == "scipy" else _solver(name, scene.layout, noise * np.abs(T).max())
+        fn = _scipy if name == "scipy" else _solver(name, scene.layout, noise * np.abs(T).max(), scene.samples)
         try:
             seconds, (t1, bounces, residual) = median_time(fn, repeats, noisy, photos, n_bounces)
         except TransportError as exc:

@@ -65,6 +65,7 @@ def load_operator(
     layout: tuple[int, int] | None = None,
     regularise: bool = False,
     beams: np.ndarray | None = None,
+    points: np.ndarray | None = None,
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
@@ -72,8 +73,11 @@ def load_operator(
     ``solver``: auto, dense, mixed, blocks, series or compressed (:mod:`ilt.solvers`).
     ``noise``: sigma of T relative to its unit columns (also the floor below which
     blocks and series drop entries, and compressed's tolerance); None measures it from
-    T's negative entries when it can. ``layout`` and ``beams`` (plan beam of each row)
-    place the samples on the plan's grid, which compressed orders its tree by.
+    T's negative entries when it can. ``points`` (m, 2): where each sample is seen in
+    the camera frame, which compressed orders its tree by (points near in the image are
+    near in the scene, far more often than neighbours on the plan's grid are: the box's
+    top rank at m = 3072 is 216 by pixels, 521 by grid); without them, ``layout`` and
+    ``beams`` (plan beam of each row) place the samples on the plan's grid.
     ``regularise``: denoise T first (:mod:`ilt.regularise`; needs the noise and the
     plan ``layout``). Returns the operator and a JSON-ready dict of diagnostics with
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
@@ -100,7 +104,8 @@ def load_operator(
     notes.update(fingerprint="sha256:" + key.split("-")[0])
     if name != "dense":
         log.info("building the %s operator (m = %d): %s", name, T.shape[0], reason)
-        op, why = build_operator(T, name, measured, reason, points=grid_points(layout, T.shape[0], beams))
+        points = grid_points(layout, T.shape[0], beams) if points is None else points
+        op, why = build_operator(T, name, measured, reason, points=points)
         figures = {op.solver: op.figures} if op.solver in ("series", "compressed") else {}
         return op, {**operator_diagnostics(T, op), **notes, "solver": op.solver, "solver_reason": why,
                     "rcond": op.rcond, "cached": False, **figures}
@@ -280,7 +285,8 @@ def decompose(
         if (out / stem).exists() and not force:
             raise InputError(f"{out / stem} exists; use --force to replace it")
     try:
-        op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise, isf.beams)
+        op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
+                                    isf.samples)
     except TransportError as exc:
         raise TransportError(f"{isf.path}: {exc}") from None
     for w in op_diag["warnings"]:

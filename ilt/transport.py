@@ -131,10 +131,11 @@ def _check_isf(T: np.ndarray) -> np.ndarray:
         raise TransportError("T is empty")
     if not np.issubdtype(T.dtype, np.floating) and not np.issubdtype(T.dtype, np.integer):
         raise TransportError(f"T has dtype {T.dtype}; expected a real floating-point matrix")
-    finite = np.isfinite(T)
-    if not finite.all():
-        i, j = np.argwhere(~finite)[0]
-        raise TransportError(f"T holds a non-finite value {T[i, j]} at pixel row {i}, beam column {j}")
+    for i0 in range(0, T.shape[0], 256):  # a block of rows at a time: no m x m temporary
+        finite = np.isfinite(T[i0:i0 + 256])
+        if not finite.all():
+            i, j = np.argwhere(~finite)[0]
+            raise TransportError(f"T holds a non-finite value {T[i0 + i, j]} at pixel row {i0 + i}, beam column {j}")
     return T
 
 

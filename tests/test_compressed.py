@@ -127,7 +127,7 @@ def test_refusals_are_one_line_with_the_figure(monkeypatch):
     with pytest.raises(TransportError, match=r"sample positions of shape \(3, 2\)"):
         compressed_operator(T, points=np.zeros((3, 2)))
     # a compression that drops what it should keep is caught by the residual against T
-    monkeypatch.setattr(compressed, "low_rank", lambda block, atol, rng: (np.zeros((block.shape[0], 0)),
+    monkeypatch.setattr(compressed, "low_rank", lambda block, atol, rng, **_: (np.zeros((block.shape[0], 0)),
                                                                           np.zeros((block.shape[1], 0))))
     with pytest.raises(TransportError) as err:
         compressed_operator(T, tol=1e-10, leaf=32)

@@ -470,7 +470,7 @@ class CompressedOperator(UnitColumnOperator):
 
 
 def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndarray | None = None,
-                        leaf: int | None = None, seed: int = 0) -> CompressedOperator:
+                        leaf: int | None = None, seed: int = 0, split_min: int | None = SPLIT_MIN) -> CompressedOperator:
     """Build ``C1`` from T in HODLR form (see the module docstring).
 
     Parameters
@@ -485,6 +485,10 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
         on them. None keeps the index order.
     leaf : int or None
         Points per leaf, factorised densely (None: :data:`LEAF`).
+    split_min : int or None
+        Nodes of more than ``split_min`` leaves choose, among the axes of ``points``,
+        the split whose blocks have the lowest ranks (estimated from sub-blocks,
+        :func:`_split_rank`); None: always the widest axis.
 
     Raises
     ------
@@ -516,8 +520,11 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[0] != m or not np.all(np.isfinite(points)):
             raise TransportError(f"compressed: sample positions of shape {points.shape} do not place m = {m} points")
-        order = spatial_order(points, lambda a, b: _split_rank(T, inv_norms, tol, a, b), SPLIT_MIN * leaf)
-        ordering = "points ordered by a k-d tree on their positions, split where the blocks' ranks are lowest"
+        if split_min is None:
+            order, ordering = spatial_order(points), "points ordered by a k-d tree on their positions"
+        else:
+            order = spatial_order(points, lambda a, b: _split_rank(T, inv_norms, tol, a, b), split_min * leaf)
+            ordering = "points ordered by a k-d tree on their positions, split where the blocks' ranks are lowest"
     else:
         order, ordering = np.arange(m), "index order (no positions given)"
     ordered = np.all(order[1:] > order[:-1])

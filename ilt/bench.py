@@ -327,6 +327,7 @@ def plot(rows: list[BenchRow], path, bias_variance: list[BiasVarianceRow] = ()) 
     ax1, ax2 = axes[:2]
     if bias_variance:
         _plot_bias_variance(axes[2], bias_variance)
+    untrue = [r for r in rows if not r.refused and r.bounce_error is None]  # past the simulator
     rows = [r for r in rows if not r.refused and r.bounce_error is not None]
     solvers = list(dict.fromkeys(r.solver for r in rows))
     clean = [r for r in rows if r.noise == 0]
@@ -342,10 +343,14 @@ def plot(rows: list[BenchRow], path, bias_variance: list[BiasVarianceRow] = ()) 
         if noisy:  # solid: the whole decomposition (pooled); dashed: its worst bounce
             line, = ax2.loglog([p[0] for p in noisy], [p[2] for p in noisy], "o-", label=solver)
             ax2.loglog([p[0] for p in noisy], [p[1] for p in noisy], "x--", color=line.get_color(), alpha=0.6)
+    for r in (r for r in untrue if r.noise == 0):
+        ax1.loglog([r.seconds], [max(r.solve_residual, 1e-17)], "s", color="k",
+                   label=f"{r.solver}, memory-mapped {r.scene} (solve residual)")
+        ax1.annotate(str(r.m), (r.seconds, r.solve_residual), fontsize=7, alpha=0.6)
     ax1.set(xlabel="seconds (median)", ylabel="worst relative bounce error",
             title="run time against error (noise-free; labels: m)")
     ax2.set(xlabel="noise in T (relative to max |T|)", ylabel="relative error (solid: all bounces; dashed: worst)",
-            title=f"error against noise (m = {max(r.m for r in rows)})")
+            title=f"error against noise (m = {max(r.m for r in rows)})" if rows else "error against noise")
     for ax in (ax1, ax2):
         ax.grid(True, which="both", alpha=0.3)
         if ax.has_data():

@@ -300,3 +300,5 @@ def test_bench_past_the_simulator_runs_compressed_on_a_memory_map(tmp_path, monk
     assert all(r["scene"] == "box" and r["m"] == 192 for r in rows if r["scene"] != "corner")
     assert (tmp_path / "out" / "bench.png").stat().st_size > 0
     assert "solve residual" in result.stderr
+    bench.plot([bench.BenchRow(**r) for r in corner], tmp_path / "corner.png")  # no simulated row at all
+    assert (tmp_path / "corner.png").stat().st_size > 0

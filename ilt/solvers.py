@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ilt.compressed import compressed_operator
+from ilt.compressed import DEFAULT_TOL, compressed_operator
 from ilt.series import (
     count_nonzeros,
     greedy_colouring,
@@ -70,13 +70,10 @@ SERIES_FLOP_PENALTY = 20
 SERIES_MARGIN = 2
 #: solved columns counted beside the build (16 photos x 8 bounces)
 SERIES_USE_COLUMNS = 128
-# auto picks ``compressed`` where it was measured to win (docs/numerics.md,
-# "compressed": 2.7x faster than dense at m = 12288 and a floor of 1e-4, 1.5x at 1e-6;
-# slower than dense at m <= 6075 on the box scene at any floor)
-#: from this size
-COMPRESSED_MIN_M = 12288
-#: at a noise floor (relative to T's unit columns) of at least this
-COMPRESSED_MIN_NOISE = 1e-4
+#: auto picks ``compressed`` from this size, where it was measured to win at every
+#: noise level (docs/numerics.md, "compressed": on the box, 2.4x faster than dense at
+#: m = 6075 noise-free, 2.8x at 1e-3; even at m = 3072)
+COMPRESSED_MIN_M = 6000
 
 
 @dataclass(frozen=True)
@@ -220,10 +217,11 @@ def choose_solver(T: np.ndarray, noise: float | None) -> tuple[str, str]:
     if dense_bytes > available_memory():
         return "compressed", (f"dense needs {dense_bytes / 2**20:.0f} MiB (two m x m float64 arrays, m = {m}), "
                               f"more than the {available_memory() / 2**20:.0f} MiB available")
-    if noise is not None and noise >= COMPRESSED_MIN_NOISE and m >= COMPRESSED_MIN_M:
-        return "compressed", (f"m = {m} >= {COMPRESSED_MIN_M} and noise {noise:.2g} >= {COMPRESSED_MIN_NOISE:.0e}: "
-                              "T's off-diagonal blocks are low-rank to the noise floor, so compressing beats "
-                              "a dense LU")
+    if m >= COMPRESSED_MIN_M:
+        floor = (f"the noise floor {noise:.2g}" if noise is not None else
+                 f"{DEFAULT_TOL:.0e} of max |T| (noise unknown; bounce errors ~1e-7, --solver dense for rounding's)")
+        return "compressed", (f"m = {m} >= {COMPRESSED_MIN_M}: T's off-diagonal blocks are low-rank to {floor}, "
+                              "so compressing beats a dense LU")
     if noise is not None and noise >= MIXED_NOISE and m >= MIXED_MIN_M:
         return "mixed", (f"noise {noise:.2g} in T is far above float32 rounding and m = {m} >= {MIXED_MIN_M}: "
                          "float32 factors halve time and memory")

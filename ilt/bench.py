@@ -7,7 +7,7 @@ benchmark times, as the median of repeats,
   formed, then the bounce recursion with matrix products;
 - each ilt solver (``dense``, ``mixed``, ``blocks``, ``series``, ``compressed``; see
   :mod:`ilt.solvers`): build the operator and split a batch of photos into N bounces
-  (``compressed`` to the true sigma, on the scene's grid order); for noisy T also
+  (``compressed`` to the true sigma, its tree ordered by the sample pixels); for noisy T also
   ``regularised`` (:mod:`ilt.regularise`, with the true sigma, then ``dense``). A
   solver that refuses T (``series`` on a dense T) gets a row saying why, no figures;
 
@@ -17,6 +17,9 @@ all bounces together ``||L - L*|| / ||L*||`` (stacked: weighted by each bounce's
 energy, where the worst bounce is usually the faintest), the relative error
 of ``diag(T1)``, the closure error, the error amplification (bounce error over the
 relative noise in T) and the peak memory it allocates (tracemalloc).
+
+Sizes past the simulator (:data:`SIMULATED_MAX_M`) run ``compressed`` alone on a
+memory-mapped synthetic ISF (:func:`kernel_case`).
 """
 
 from __future__ import annotations

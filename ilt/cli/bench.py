@@ -27,7 +27,7 @@ def _list(kind):
 @click.option("--sizes", callback=_list(int),
               help="Comma-separated m values (default 256,...,4096). Past 16428 (the largest the simulator "
                    "builds, 265 s) only compressed runs, on a synthetic cube-corner ISF written to a "
-                   "memory-mapped T.npy in the temporary directory (it needs T's size of disk: 8.2 GiB at "
+                   "memory-mapped T.npy in the temporary directory (TMPDIR; it needs T's size of disk: 8.2 GiB at "
                    "32768); its error figure is the solve residual against T.")
 @click.option("--scenes", callback=_list(str), default="box", show_default=True,
               help="Comma-separated scenes: m, box, textured, occluded.")

@@ -76,6 +76,8 @@ log = logging.getLogger(__name__)
 DEFAULT_TOL = 1e-8
 #: points per leaf (factorised densely)
 LEAF = 256
+#: from this size the phases of a build are logged at INFO (seconds each), below at DEBUG
+PROGRESS_M = 4096
 #: nodes of more than this many leaves choose the split that gives the lowest ranks (:func:`spatial_order`)
 SPLIT_MIN = 8
 #: columns added to a block's basis per pass of the range finder
@@ -590,8 +592,9 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
     nodes = sorted(root.walk(), key=lambda n: -n.size)  # the largest blocks first: threads finish together
     workers = worker_threads()
     read = time.perf_counter()
-    log.info("compressed: T (m = %d) checked in %.1f s; compressing to tol %.2g on %d threads", m, read - start,
-             tol, workers)
+    level = logging.INFO if m >= PROGRESS_M else logging.DEBUG
+    log.log(level, "compressed: T (m = %d) checked in %.1f s; compressing to tol %.2g on %d threads", m,
+            read - start, tol, workers)
     jobs = [(lambda n=n, s=s: compress(n, s)) if n.children else (lambda n=n: invert(n))
             for n in nodes for s in ((0, 1) if n.children else (0,))]
     if mapped and root.children:
@@ -607,8 +610,8 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
         _in_parallel(jobs, workers)
         compressed = time.perf_counter()
         root.factorise(split=_split_levels(workers))
-    log.info("compressed: blocks compressed in %.1f s (top rank %d), factorised in %.1f s", compressed - read,
-             root.rank, time.perf_counter() - compressed)
+    log.log(level, "compressed: blocks compressed in %.1f s (top rank %d), factorised in %.1f s",
+            compressed - read, root.rank, time.perf_counter() - compressed)
     inv_diag = np.empty(m)
     inv_diag[order] = root.inv_diag
     bad = np.flatnonzero(~np.isfinite(inv_diag) | (inv_diag == 0))
@@ -626,8 +629,8 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
                              f"({op.allowance:.2g}); use --solver dense")
     checked = time.perf_counter()
     op.rcond = 1.0 / (one_norm * one_norm_estimate(_inverse(op)))
-    log.info("compressed: residual checked in %.1f s, condition estimated in %.1f s",
-             checked - start - seconds, time.perf_counter() - checked)
+    log.log(level, "compressed: residual checked in %.1f s, condition estimated in %.1f s",
+            checked - start - seconds, time.perf_counter() - checked)
     return op
 
 

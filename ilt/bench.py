@@ -171,17 +171,18 @@ def bench_case(scene_name: str, m: int, noise: float = 0.0, solvers=SOLVERS, bat
 
 
 def kernel_case(m: int, noise: float = 0.0, solvers=SOLVERS, batch: int = 16, n_bounces: int = 8,
-                repeats: int = 3, seed: int = 0, scratch=None) -> list[BenchRow]:
+                repeats: int = 3, seed: int = 0) -> list[BenchRow]:
     """m past the simulator (:data:`SIMULATED_MAX_M`): ``compressed`` alone, on the
     cube-corner kernel ISF of :mod:`ilt.sim.kernel` (m rounded to 3 n^2) written to a
-    memory-mapped ``T.npy`` in a temporary directory under ``scratch`` (it needs T's
-    size of disk) with noise of ``noise`` per entry (its largest entry is 1); the
+    memory-mapped ``T.npy`` in a temporary directory (``TMPDIR``; it needs T's size of
+    disk) with noise of ``noise`` per entry (its largest entry is 1); the
     other solvers get a row saying why they did not run. There is no simulator truth:
     the figure is the relative residual of the photos' solves against T itself, and
     the peak memory is the process's resident memory while it runs, the pages of the
     mapped T included."""
     import tempfile
 
+    from ilt.compressed import unit_column_product
     from ilt.sim.kernel import corner_kernel_isf, corner_points
 
     n = max(1, round(math.sqrt(m / 3)))
@@ -192,7 +193,7 @@ def kernel_case(m: int, noise: float = 0.0, solvers=SOLVERS, batch: int = 16, n_
             if name != "compressed" and not (name == "regularised" and noise == 0)]
     if "compressed" not in solvers:
         return rows
-    with tempfile.TemporaryDirectory(prefix="ilt-bench-", dir=scratch) as tmp:
+    with tempfile.TemporaryDirectory(prefix="ilt-bench-") as tmp:
         T = corner_kernel_isf(Path(tmp) / "T.npy", n, noise=noise, seed=seed + 1)
         points = corner_points(n)[0]
         photos = np.random.default_rng(seed).uniform(size=(T.shape[0], batch))
@@ -203,10 +204,7 @@ def kernel_case(m: int, noise: float = 0.0, solvers=SOLVERS, batch: int = 16, n_
 
         with PeakResident() as peak:
             seconds, (op, dec) = median_time(run, repeats)
-        residual = photos.copy()
-        x = op.solve(photos) / op.column_norms[:, None]
-        for j0 in range(0, T.shape[0], 512):  # T x, a column block at a time
-            residual -= np.asarray(T[:, j0:j0 + 512]) @ x[j0:j0 + 512]
+        residual = photos - unit_column_product(T, 1.0 / op.column_norms, op.solve(photos))
         closure = np.linalg.norm(photos - dec.bounces.sum(axis=0) - dec.residual) / np.linalg.norm(photos)
         rows.append(BenchRow(
             scene=KERNEL_SCENE, m=T.shape[0], noise=noise, solver="compressed", batch=batch, bounces=n_bounces,

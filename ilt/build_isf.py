@@ -19,6 +19,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse
 from scipy.spatial import cKDTree
 
 from ilt.cells import cell_operator, integrate_with, voronoi_cells
@@ -31,9 +32,18 @@ from ilt.frames import (
     open_hdr_directory,
     run_chunks,
 )
+from ilt.fullres import (
+    DEFAULT_DEGREE,
+    CellGeometry,
+    basis_terms,
+    finish_coefficients,
+    fit_operator,
+    frames_inputs,
+    write_fine,
+)
 from ilt.imageio import write_exr
 from ilt.isf import CELLS_FILE, SCALES_FILE, write_isf
-from ilt.manifest import read_manifest, save_npy, staged_directory, write_manifest
+from ilt.manifest import fingerprint_array, read_manifest, save_npy, staged_directory, write_manifest
 from ilt.preview import save_png
 from ilt.spots import SPOTS_FILE, SUM_FILE, format_flags, read_spots
 
@@ -88,17 +98,18 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float) -> n
     return frame_sum > fraction * np.median(frame_sum[rows, cols])
 
 
-def _column_chunk(beams, files, shape, sampler, m, scratch=None):
-    """Worker: one column of raw T per frame, (m, len(beams)) float64.
+def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):
+    """Worker: one column of raw T per frame, (m, len(beams)) float64, and below it, with
+    a fine ``degree``, the frame's (K m) raw fine-operator coefficients (:mod:`ilt.fullres`).
 
     sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
     the (m,) flat pixel indices of the samples (point sampling). files: each beam's EXR,
     or None for a beam whose frame ``scratch`` (:class:`ilt.frames.FrameScratch`) keeps.
     """
-    out = np.empty((m, len(files)))
+    operator, cells = _cached_operator(sampler, m, degree) if isinstance(sampler, (str, Path)) else (None, None)
+    out = np.empty((m if operator is None else operator.shape[0] + (m if degree else 0), len(files)))
     frame = np.empty(shape)  # one float64 buffer for the chunk: the product reads it as is
     kept = np.empty(shape, np.float32) if scratch is not None else None
-    operator = _cached_operator(sampler, m) if isinstance(sampler, (str, Path)) else None
     fd = scratch.open() if scratch is not None and None in files else None
     try:
         for k, (beam, path) in enumerate(zip(beams, files)):
@@ -106,7 +117,13 @@ def _column_chunk(beams, files, shape, sampler, m, scratch=None):
                 np.copyto(frame, scratch.read(fd, beam, kept))
             else:
                 load_frame(path, shape, out=frame)
-            out[:, k] = integrate_with(frame, operator) if operator is not None else frame.ravel()[sampler]
+            if operator is None:
+                out[:, k] = frame.ravel()[sampler]
+            elif degree:
+                out[:operator.shape[0], k] = integrate_with(frame, operator)
+                out[operator.shape[0]:, k] = integrate_with(np.square(frame, out=frame), cells)
+            else:
+                out[:, k] = integrate_with(frame, operator)
     finally:
         if fd is not None:
             os.close(fd)
@@ -116,21 +133,31 @@ def _column_chunk(beams, files, shape, sampler, m, scratch=None):
 _OPERATOR_CACHE: dict = {}
 
 
-def _cached_operator(path, m):
-    """The cell operator of ``cells.exr`` at ``path``, built once per worker process."""
+def _cached_operator(path, m, degree=None):
+    """The cell operator of ``cells.exr`` at ``path`` (with a fine ``degree``, the fine
+    operator's fit stacked below it: one sparse product per frame gives both; a row's
+    sum is the same as alone, so T is the same bit for bit) and the cell operator alone
+    (for the squared frames, which judge each cell's fit), built once per worker process."""
     from ilt.isf import read_cells
 
-    key = (str(path), os.stat(path).st_mtime_ns, m)
+    key = (str(path), os.stat(path).st_mtime_ns, m, degree)
     if key not in _OPERATOR_CACHE:
         _OPERATOR_CACHE.clear()
-        _OPERATOR_CACHE[key] = cell_operator(read_cells(Path(path), m), m)
+        labels = read_cells(Path(path), m)
+        cells = cell_operator(labels, m)
+        operator = cells
+        if degree:
+            operator = scipy.sparse.vstack([cells, fit_operator(CellGeometry.from_labels(labels, m), degree)],
+                                           format="csr")
+        _OPERATOR_CACHE[key] = operator, cells
     return _OPERATOR_CACHE[key]
 
 
 def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str | os.PathLike,
               sampling: str = "cell", min_separation: float = 2.0, lit_fraction: float = 1e-3,
               max_cell_radius: float | None = None, executor=None, workers: int | None = None,
-              chunk: int = 16, progress=None, force: bool = False, frame_cache=None) -> dict:
+              chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
+              fine_degree: int | None = DEFAULT_DEGREE) -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
@@ -144,6 +171,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     files, and the frames file is removed once read. The caller removes the directory.
     ``min_separation`` is in full-frame pixels; ``max_cell_radius`` in
     frame-grid pixels, by default 2 x the median distance between neighbouring kept spots.
+    ``fine_degree`` (cell sampling): also write ``fine/``, the fine operator of
+    full-resolution bounce images (:mod:`ilt.fullres`), fitted in the same pass over the
+    frames; None skips it.
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
@@ -182,6 +212,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             raise BuildError(f"beam {plan[outside[0]]}: spot at {centroids[outside[0]].round(2).tolist()} "
                              f"is outside the {hdr.frame_shape[1]} x {hdr.frame_shape[0]} frame")
         sampler = px[:, 1] * hdr.frame_shape[1] + px[:, 0]
+        fine_degree = None
+    if fine_degree is not None:
+        terms = basis_terms(fine_degree)
     with staged_directory(out, force=force) as tmp:
         if labels is not None:
             write_exr(tmp / CELLS_FILE, labels.astype(np.float32), channels=["label"],
@@ -192,12 +225,17 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         scratch = FrameScratch(Path(frame_cache), hdr.frame_shape) if frame_cache is not None else None
         kept = scratch.kept() if scratch is not None else frozenset()
         tasks = [(c, [None if b in kept else hdr.files[b] for b in c], hdr.frame_shape, sampler, m,
-                  scratch if kept else None) for c in chunks(plan, chunk)]
+                  scratch if kept else None, fine_degree) for c in chunks(plan, chunk)]
         raw = np.empty((m, m))
+        coefficients = np.empty((terms, m, m)) if fine_degree else None
+        squares = np.empty((m, m)) if fine_degree else None
         done = 0
         with beam_executor(executor, workers) as ex:
             for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
-                raw[:, done:done + block.shape[1]] = block
+                raw[:, done:done + block.shape[1]] = block[:m]
+                if coefficients is not None:
+                    coefficients[:, :, done:done + block.shape[1]] = block[m:-m].reshape(terms, m, -1)
+                    squares[:, done:done + block.shape[1]] = block[-m:]
                 done += block.shape[1]
         if kept:  # every kept frame is read: free its disk while the outputs are written
             _in_background(scratch.path.unlink, missing_ok=True)
@@ -206,13 +244,18 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         if zero.size:
             raise BuildError(f"beam {plan[zero[0]]} ({hdr.files[plan[zero[0]]]}): its image is zero at every sample")
         T = raw / scales
+        if fine_degree is not None:
+            stored, share = (None, None) if coefficients is None else finish_coefficients(
+                coefficients, raw, squares, scales, CellGeometry.from_labels(labels, m), fine_degree)
+            del coefficients, squares
+            write_fine(tmp, stored, fine_degree, T, fingerprint_array(labels), frames_inputs(hdr.path), share)
         fields = {"sampling": sampling, "beams": plan, "drops": drops, "plan_m": hdr.m,
                   "pixel_mapping": hdr.mapping.as_dict()}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan)
         save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)")
         parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
-                      "max_cell_radius": max_cell_radius}
+                      "max_cell_radius": max_cell_radius, "fine_degree": fine_degree}
         inputs = {str(spots_dir / SPOTS_FILE): read_manifest(spots_dir)["outputs"].get(SPOTS_FILE, "")
                   if (spots_dir / "manifest.json").exists() else ""}
         inputs.update(read_manifest(spots_dir).get("inputs", {}) if (spots_dir / "manifest.json").exists() else {})

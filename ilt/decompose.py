@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import numpy as np
 from ilt.cells import integrate, mosaic
 from ilt.compressed import grid_points
 from ilt.frames import FrameError, PixelMapping
+from ilt.fullres import FineError, FineOperator, full_resolution, load_fine
 from ilt.imageio import ImageError, read_exr, write_exr
 from ilt.isf import ISF
 from ilt.layout import sample_frame, splat, vector_to_image
@@ -66,6 +68,7 @@ def load_operator(
     regularise: bool = False,
     beams: np.ndarray | None = None,
     points: np.ndarray | None = None,
+    fingerprint: str | None = None,
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
@@ -82,8 +85,9 @@ def load_operator(
     plan ``layout``). Returns the operator and a JSON-ready dict of diagnostics with
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
     ``series`` or ``compressed`` figures of those solvers, build included).
+    ``fingerprint``: T's :func:`~ilt.manifest.fingerprint_array` when the caller has it.
     """
-    key = fingerprint_array(np.asarray(T)).split(":", 1)[1]
+    key = (fingerprint or fingerprint_array(np.asarray(T))).split(":", 1)[1]
     measured = estimate_noise(T) if noise is None else noise
     notes = {
         "noise": measured,
@@ -142,7 +146,9 @@ class Photo:
     """One input: its sample vector(s) and how to show results.
 
     values : (m,) or (m, k) float64; channels : names of the k columns (or None);
-    frame : True when it came from a camera frame (results are also splatted back).
+    frame : True when it came from a camera frame (results are also splatted back);
+    image : the frame itself, (H, W, k) float32 (None for sample vectors);
+    saturated : (H, W) bool pixels its merge found saturated in every exposure (None: none known).
     """
 
     name: str
@@ -150,6 +156,21 @@ class Photo:
     values: np.ndarray
     channels: list[str] | None
     frame: bool
+    image: np.ndarray | None = None
+    saturated: np.ndarray | None = None
+
+
+def _saturated_mask(path: Path, shape) -> np.ndarray | None:
+    """The ``<stem>.saturated.png`` that ``ilt merge`` writes beside a photo, as (H, W) bool."""
+    import cv2
+
+    mask_path = path.with_suffix(".saturated.png")
+    if not mask_path.exists():
+        return None
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+    if mask is None or mask.shape != tuple(shape):
+        raise InputError(f"{mask_path}: not a {shape[1]} x {shape[0]} mask of {path.name}'s saturated pixels")
+    return mask > 0
 
 
 def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
@@ -177,7 +198,7 @@ def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
         if not np.issubdtype(values.dtype, np.number):
             raise InputError(f"{path}: dtype {values.dtype} is not numeric")
         values = values.astype(np.float64)
-        channels, frame = None, False
+        channels, frame, image, saturated = None, False, None, None
     elif suffix == ".exr":
         if isf.samples is None:
             raise InputError(f"{path}: an EXR photo needs the ISF's samples.csv to know which pixels to read")
@@ -193,6 +214,11 @@ def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
         if isf.cells is not None and image.shape[:2] != isf.cells.shape:
             raise InputError(f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, the ISF's cells "
                              f"are {isf.cells.shape[1]} x {isf.cells.shape[0]}")
+        bad = ~np.isfinite(image)
+        if bad.any():
+            y, x = np.argwhere(bad.any(axis=2))[0]
+            raise InputError(f"{path}: {int(bad.any(axis=2).sum())} pixels are NaN or Inf (the first at x = {x}, "
+                             f"y = {y}); mend or mask them before decomposing")
         try:
             own = PixelMapping.from_attributes(attrs, path)
         except FrameError as exc:
@@ -211,12 +237,14 @@ def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
         if values.ndim == 2 and values.shape[1] == 1:
             values = values[:, 0]
         frame = True
+        saturated = _saturated_mask(path, image.shape[:2])
     else:
         raise InputError(f"{path}: unsupported input type '{suffix}' (use .exr frames or .npy sample vectors)")
     if not np.all(np.isfinite(values)):
         i = int(np.argwhere(~np.isfinite(values))[0][0])
         raise InputError(f"{path}: sample {i} is not finite")
-    return Photo(name=path.stem, path=path, values=values, channels=channels or None, frame=frame)
+    return Photo(name=path.stem, path=path, values=values, channels=channels or None, frame=frame, image=image,
+                 saturated=saturated if saturated is not None and saturated.any() else None)
 
 
 def _images(values: np.ndarray, isf: ISF, frame: bool) -> dict[str, np.ndarray]:
@@ -231,11 +259,16 @@ def _images(values: np.ndarray, isf: ISF, frame: bool) -> dict[str, np.ndarray]:
 
 
 def write_decomposition(
-    directory: Path, photo: Photo, isf: ISF, decomposition, diagnostics: dict,
+    directory: Path, photo: Photo, isf: ISF, decomposition, diagnostics: dict, fine: FineOperator | None = None,
+    t1: np.ndarray | None = None,
 ) -> None:
-    """Fill ``directory`` with one photo's results (see docs/formats.md)."""
+    """Fill ``directory`` with one photo's results (see docs/formats.md): with a fine
+    operator (and a frame input), the full-resolution images at the top and the
+    sample-level ones in ``samples/``; else the sample-level ones only."""
     save_npy(directory / "bounces.npy", decomposition.bounces)
     save_npy(directory / "residual.npy", decomposition.residual)
+    samples = directory / "samples"
+    samples.mkdir()
     named = {"photo": photo.values}
     named.update({f"bounce-{n}": b for n, b in enumerate(decomposition.bounces, start=1)})
     named["indirect"] = decomposition.indirect
@@ -247,13 +280,41 @@ def write_decomposition(
             attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name}
             if kind == "frame":
                 attributes.update(isf.mapping.attributes())
-            write_exr(directory / f"{name}{suffix}.exr", image, channels=channels, attributes=attributes)
+            write_exr(samples / f"{name}{suffix}.exr", image, channels=channels, attributes=attributes)
     first = (lambda v: v) if photo.values.ndim == 1 else (lambda v: v[:, 0])
     panels = {"photo": first(photo.values)}
     panels.update({f"L{n}": first(b) for n, b in enumerate(decomposition.bounces, start=1)})
     panels["indirect"] = first(decomposition.indirect)
-    bounce_panel(directory / "preview.png", {k: vector_to_image(v, isf.layout, isf.beams) for k, v in panels.items()})
+    bounce_panel(samples / "preview.png", {k: vector_to_image(v, isf.layout, isf.beams) for k, v in panels.items()})
+    if fine is not None and photo.image is not None:
+        images = full_resolution(fine, photo.image, decomposition, t1, photo.saturated)
+        for name, image in images.items():
+            attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name, **isf.mapping.attributes()}
+            write_exr(directory / f"{name}.exr", image, channels=["Y"] if name == "coverage" else channels,
+                      attributes=attributes)
+        shown = {"photo": photo.image[:, :, 0]}
+        shown.update({k.replace("-", " "): images[k][:, :, 0] for k in images if k.startswith("bounce-")
+                      and int(k[7:]) <= PREVIEW_BOUNCES})
+        shown["indirect"] = images["indirect"][:, :, 0]
+        bounce_panel(directory / "preview.png", shown)
+    else:
+        shutil.copyfile(samples / "preview.png", directory / "preview.png")
     write_json(directory / "summary.json", diagnostics)
+
+
+#: full-resolution bounce images drawn in preview.png (all are written as EXR)
+PREVIEW_BOUNCES = 3
+
+
+def _full_resolution_summary(photo: Photo, fine: FineOperator | None, why: str) -> dict:
+    if not photo.frame:
+        return {"written": False, "reason": "a sample vector has no pixels"}
+    if fine is None:
+        return {"written": False, "reason": why}
+    saturated = int(photo.saturated.sum()) if photo.saturated is not None else 0
+    covered = fine.geometry.inside.size - (int(photo.saturated.ravel()[fine.geometry.inside].sum()) if saturated else 0)
+    return {"written": True, "degree": fine.degree, "pixels": int(photo.image.shape[0] * photo.image.shape[1]),
+            "coverage": covered / (photo.image.shape[0] * photo.image.shape[1]), "saturated_pixels": saturated}
 
 
 def decompose(
@@ -267,11 +328,15 @@ def decompose(
     solver: str = "auto",
     noise: float | None = None,
     regularise: bool = False,
+    samples_only: bool = False,
 ) -> list[dict]:
     """Decompose every input into ``out/<stem>/``; returns one summary per input.
 
     ``solver``, ``noise`` and ``regularise`` choose how ``C1`` is built (see
-    :func:`load_operator`).
+    :func:`load_operator`). EXR photos are also split at full resolution when the ISF
+    has a fine operator (:mod:`ilt.fullres`), unless ``samples_only``; saturated
+    pixels (``<stem>.saturated.png`` beside the photo, as ``ilt merge`` writes it) are
+    left out of the full-resolution images and counted.
 
     All inputs are read and checked before anything is written, so a bad input leaves
     no output behind.
@@ -284,9 +349,18 @@ def decompose(
     for stem in stems:
         if (out / stem).exists() and not force:
             raise InputError(f"{out / stem} exists; use --force to replace it")
+    fingerprint = fingerprint_array(np.asarray(isf.T))
+    fine, why = None, "--samples-only"
+    if not samples_only and any(p.frame for p in photos):
+        try:
+            fine, why = load_fine(isf, fingerprint)
+        except FineError as exc:
+            raise InputError(str(exc)) from None
+        if fine is None:
+            log.info("%s", why)
     try:
         op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
-                                    isf.samples)
+                                    isf.samples, fingerprint=fingerprint)
     except TransportError as exc:
         raise TransportError(f"{isf.path}: {exc}") from None
     for w in op_diag["warnings"]:
@@ -299,15 +373,20 @@ def decompose(
             diag = decomposition_diagnostics(photo.values, dec)
             for w in diag["warnings"]:
                 log.warning("%s: %s", photo.path, w)
+            full = fine is not None and photo.frame
             summary = {
                 "input": str(photo.path),
                 "input_fingerprint": fingerprint_file(photo.path),
                 "isf": str(isf.path),
                 "operators": op_diag,
                 "decomposition": diag,
+                "full_resolution": _full_resolution_summary(photo, fine, why),
             }
+            if full and photo.saturated is not None:
+                log.warning("%s: %d saturated pixels (values are lower bounds) left out of the full-resolution "
+                            "images (coverage 0, all residual)", photo.path, int(photo.saturated.sum()))
             with staged_directory(out / photo.name, force=force) as tmp:
-                write_decomposition(tmp, photo, isf, dec, summary)
+                write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1_unit * op.column_norms)
                 write_manifest(
                     tmp, "decompose", {"bounces": n_bounces, "tol": tol},
                     inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): op_diag["fingerprint"]},

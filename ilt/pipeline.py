@@ -122,7 +122,8 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
                                 ("threshold", "min_snr", "max_second", "max_elongation", "large_factor",
                                  "max_area", "saturation", "roi", "refine", "workers"), f"{path}: [centroids]"),
         build_isf=stage_options(build_isf_cli.command, raw.get("build-isf", {}),
-                                ("sampling", "min_separation", "lit_fraction", "max_cell_radius", "workers"),
+                                ("sampling", "min_separation", "lit_fraction", "max_cell_radius", "fine_degree", "no_fine",
+                                 "workers"),
                                 f"{path}: [build-isf]"),
         decompose=stage_options(decompose_cli.command, raw.get("decompose", {}), ("n_bounces", "tol"),
                                 f"{path}: [decompose]"),
@@ -176,7 +177,9 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
     spot_params = {k: v for k, v in c.items() if k != "workers"}
     if spot_params.get("roi") is not None:
         spot_params["roi"] = tuple(float(v) for v in spot_params["roi"])
-    isf_params = {k: v for k, v in b.items() if k != "workers"}
+    isf_params = {k: v for k, v in b.items() if k not in ("workers", "no_fine")}
+    if b.get("no_fine"):
+        isf_params["fine_degree"] = None
 
     # centroids keeps every decoded frame for build-isf (ilt.frames.FrameScratch), so a
     # run decodes each EXR once. Only frames kept by this run are ever read back:

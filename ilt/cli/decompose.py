@@ -42,18 +42,27 @@ from ilt.cli.options import (
               help="Denoise T before inverting it: smooth its indirect part along pixels and beams, edge-aware "
                    "(neighbours whose light differs by more than the noise are not averaged), kept when the "
                    "change is within the noise (discrepancy principle); needs the noise level and a full grid plan.")
+@click.option("--samples-only", is_flag=True,
+              help="Split the photo at the m samples only: skip the full-resolution bounce images "
+                   "(the ISF's fine/ operator).")
 @workspace_option
 @force_option
 @json_option
-def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solver, noise, regularise, workspace,
-            force, as_json):
+def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solver, noise, regularise, samples_only,
+            workspace, force, as_json):
     """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
 
-    INPUT is an EXR photo (read at the ISF's sample pixels) or a .npy of sample
-    vectors, shape (m,) or (m, k). Results go to OUTPUT/<input stem>/: bounces.npy
-    (N, m[, k]), residual.npy, one EXR per bounce plus indirect and residual (a strip
-    or grid in the ISF's layout; frames also splatted as *.frame.exr), preview.png and
-    summary.json with the diagnostics.
+    INPUT is an EXR photo on the grid of the beam frames (integrated over the ISF's
+    cells, or read at its sample pixels) or a .npy of sample vectors, shape (m,) or
+    (m, k). Results go to OUTPUT/<input stem>/: for an EXR photo and an ISF with a fine
+    operator (ilt build-isf writes isf/fine/), bounce-<n>.exr (n = 1..N), indirect.exr,
+    residual.exr and coverage.exr at the photo's own resolution (photo = sum of the
+    bounces + residual at every pixel; coverage 1 where the scan models a pixel's
+    indirect light); always bounces.npy (N, m[, k]), residual.npy, samples/ (the
+    sample-level images: a strip or grid in the ISF's layout, and *.frame.exr cell
+    mosaics), preview.png and summary.json with the diagnostics. Pixels that 'ilt
+    merge' marked saturated (<stem>.saturated.png beside the photo) are left out of
+    the full-resolution images and counted.
     """
     from ilt.decompose import decompose, default_cache_dir
     from ilt.isf import load_isf
@@ -62,5 +71,5 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
     isf = load_isf(isf_path, mmap=True)  # T is never held twice: solvers copy or read it as they need
     cache = None if no_cache else (Path(cache_dir) if cache_dir else default_cache_dir())
     summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache, force=force,
-                          solver=solver, noise=noise, regularise=regularise)
+                          solver=solver, noise=noise, regularise=regularise, samples_only=samples_only)
     emit(as_json, summaries, [s["output"] for s in summaries])

@@ -214,11 +214,6 @@ def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
         if isf.cells is not None and image.shape[:2] != isf.cells.shape:
             raise InputError(f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, the ISF's cells "
                              f"are {isf.cells.shape[1]} x {isf.cells.shape[0]}")
-        bad = ~np.isfinite(image)
-        if bad.any():
-            y, x = np.argwhere(bad.any(axis=2))[0]
-            raise InputError(f"{path}: {int(bad.any(axis=2).sum())} pixels are NaN or Inf (the first at x = {x}, "
-                             f"y = {y}); mend or mask them before decomposing")
         try:
             own = PixelMapping.from_attributes(attrs, path)
         except FrameError as exc:

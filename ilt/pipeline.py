@@ -125,7 +125,7 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
                                 ("sampling", "min_separation", "lit_fraction", "max_cell_radius", "fine_degree", "no_fine",
                                  "workers"),
                                 f"{path}: [build-isf]"),
-        decompose=stage_options(decompose_cli.command, raw.get("decompose", {}), ("n_bounces", "tol"),
+        decompose=stage_options(decompose_cli.command, raw.get("decompose", {}), ("n_bounces", "tol", "samples_only"),
                                 f"{path}: [decompose]"),
         photo_kinds=kinds,
         photo_files=tuple(path.parent / f for f in photos.get("files", ())),
@@ -203,7 +203,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
     def make_decompose():
         with staged_directory(d["decompose"], force=True) as tmp:
             decompose(load_isf(d["build-isf"]), photo_paths(ws, cfg), tmp, n_bounces=dec["n_bounces"],
-                      tol=dec["tol"], cache_dir=default_cache_dir(), force=True)
+                      tol=dec["tol"], cache_dir=default_cache_dir(), force=True, samples_only=dec["samples_only"])
             write_manifest(tmp, "decompose", fingerprinted(dec))
 
     stages = [

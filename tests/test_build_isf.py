@@ -67,7 +67,7 @@ def test_stage_directories(runs):
     assert isf.cells.shape == isf.frame_shape and isf.cells.min() == -1 and isf.cells.max() == 31
     assert isf.layout == (1, 32) and isf.scales.shape == (32,)
     # the decomposition is shown as a mosaic of cells on the camera frame
-    image, _ = read_exr(root / "dec-cell" / "room" / "bounce-1.frame.exr")
+    image, _ = read_exr(root / "dec-cell" / "room" / "samples" / "bounce-1.frame.exr")
     assert image.shape[:2] == isf.frame_shape
 
 
@@ -126,7 +126,7 @@ def test_flagged_and_duplicate_beams_are_dropped_with_a_warning(runs, tmp_path, 
     assert manifest["drops"] == summary["drops"]
     # a photo still decomposes, shown on the plan's strip with gaps
     run("decompose", "--isf", tmp_path / "isf", sim / "photos" / "room.exr", "-o", tmp_path / "dec", "--no-cache")
-    strip, _ = read_exr(tmp_path / "dec" / "room" / "bounce-1.exr")
+    strip, _ = read_exr(tmp_path / "dec" / "room" / "samples" / "bounce-1.exr")
     assert strip.shape[:2] == (1, 16) and strip[0, 3, 0] == 0 and strip[0, 2, 0] > 0
 
 

@@ -57,9 +57,9 @@ def test_decompose_npy_matches_truth_and_reuses_operators(isf_dir, tmp_path):
     L = np.load(photo)
     assert np.linalg.norm(L - bounces.sum(0) - residual) <= 1e-12 * np.linalg.norm(L)
     for name in ["bounce-1", "bounce-8", "indirect", "residual", "photo"]:
-        image, attrs = read_exr(out / "room" / f"{name}.exr")
+        image, attrs = read_exr(out / "room" / "samples" / f"{name}.exr")
         assert image.shape == (1, 64, 1)
-    np.testing.assert_allclose(read_exr(out / "room" / "bounce-2.exr")[0][0, :, 0], bounces[1], rtol=1e-6)
+    np.testing.assert_allclose(read_exr(out / "room" / "samples" / "bounce-2.exr")[0][0, :, 0], bounces[1], rtol=1e-6)
     assert (out / "room" / "preview.png").stat().st_size > 0
     # the second photo reuses the factorised operators
     result = run("decompose", "--isf", isf_dir, isf_dir / "photos" / "flashlight.npy", "-o", out,
@@ -84,7 +84,7 @@ def test_decompose_exr_frame(isf_dir, tmp_path):
     truth = np.load(isf_dir / "truth" / "photos" / "projector-bounces.npy")
     # EXR stores float32: the photo carries ~6e-8 relative rounding, amplified mildly by C1.
     assert relative_errors(bounces[:4], truth[:4]).max() < 1e-5
-    frame, _ = read_exr(out / "projector" / "bounce-1.frame.exr")
+    frame, _ = read_exr(out / "projector" / "samples" / "bounce-1.frame.exr")
     photo, _ = read_exr(isf_dir / "photos" / "projector.exr")
     assert frame.shape == photo.shape
 

@@ -102,7 +102,7 @@ def test_decompose_integrates_a_merged_photo_over_the_same_cells(run):
     total = np.load(out / "bounces.npy").sum(axis=0) + np.load(out / "residual.npy")
     isf = load_isf(d / "isf")
     np.testing.assert_allclose(total, isf.T[:, 3] * isf.scales[3], rtol=1e-6)
-    assert PixelMapping.from_attributes(read_exr(out / "photo.frame.exr")[1], "photo") == HALF_RES
+    assert PixelMapping.from_attributes(read_exr(out / "samples" / "photo.frame.exr")[1], "photo") == HALF_RES
 
 
 def test_point_sampling_reads_the_grid_pixel_of_each_spot(run, tmp_path):

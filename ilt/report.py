@@ -5,7 +5,8 @@ directory can be copied or served anywhere:
 
 - the scene with every spot found (paper Fig. 4): ``spots/overlay.png``;
 - T, Cn T for n = 1..4 and the indirect part T - C1 T (Fig. 5), drawn from ``isf/``;
-- each photo with its bounce images (Fig. 6, 9): ``decompose/<photo>/preview.png``;
+- each photo with its bounce images (Fig. 6, 9): ``decompose/<photo>/preview.png``,
+  drawn by decompose at the photo's resolution where it wrote full-resolution images;
 - the diagnostics of the operators and of each decomposition, with their warnings;
 - the capture's statistics (beams, frames, exposures skipped, time) from its log.
 
@@ -70,10 +71,18 @@ def _table(rows: dict) -> str:
 
 
 def _fmt(v) -> str:
+    """A value as a person reads it: "—" for None, yes / no, "none" for an empty list,
+    "key: value" pairs for a dict, numbers to 4 (in a list 3) significant digits."""
+    if v is None:
+        return "—"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
     if isinstance(v, float):
         return f"{v:.4g}"
-    if isinstance(v, list) and v and isinstance(v[0], float):
-        return ", ".join(f"{x:.3g}" for x in v)
+    if isinstance(v, dict):
+        return ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items()) or "none"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(f"{x:.3g}" if isinstance(x, float) else _fmt(x) for x in v) or "none"
     return str(v)
 
 
@@ -112,8 +121,8 @@ def write_report(workspace: Workspace, out: str | os.PathLike | None = None, for
         if (spots / "overlay.png").exists():
             shutil.copyfile(spots / "overlay.png", tmp / "spots.png")
             m = read_manifest(spots)
-            body += _figure("spots.png", f"sum of the beam frames with every spot found ({m.get('clean')} clean "
-                                         f"of {m.get('m')}; flags {m.get('flag_counts')})")
+            body += _figure("spots.png", f"sum of the beam frames with every spot found ({_fmt(m.get('clean'))} "
+                                         f"clean of {_fmt(m.get('m'))}; flags {_fmt(m.get('flag_counts'))})")
         else:
             body += '<p class="missing">no spots (run ilt centroids)</p>'
         sections.append(body)
@@ -137,11 +146,20 @@ def write_report(workspace: Workspace, out: str | os.PathLike | None = None, for
         for summary_path in photos:
             name = summary_path.parent.name
             summary = json.loads(summary_path.read_text())
-            shutil.copyfile(summary_path.parent / "preview.png", tmp / f"photo-{name}.png")
+            body += f"<h3>{html.escape(name)}</h3>"
+            full = summary.get("full_resolution", {}).get("written", False)
+            if (summary_path.parent / "preview.png").exists():
+                shutil.copyfile(summary_path.parent / "preview.png", tmp / f"photo-{name}.png")
+                body += _figure(f"photo-{name}.png", f"{name}: the photo, its bounce images and the indirect part "
+                                + ("at the photo's resolution" if full else "at the m samples")
+                                + ", on one grey scale in photo units; a panel shown brighter says by how much "
+                                  "in its title (x10: ten times)")
+            else:
+                body += '<p class="missing">no preview.png</p>'
             diag = summary["decomposition"]
-            body += f"<h3>{html.escape(name)}</h3>" + _figure(
-                f"photo-{name}.png", f"{name}: the photo, its 1..n-bounce images, indirect sum and residual")
             body += _table({k: v for k, v in diag.items() if k != "warnings"}) + _warnings(diag["warnings"])
+            if "full_resolution" in summary:
+                body += "<h4>Full resolution</h4>" + _table(summary["full_resolution"])
         if not photos:
             body += '<p class="missing">no decomposed photos (run ilt decompose)</p>'
         sections.append(body)

@@ -220,6 +220,10 @@ def test_bad_photos_are_refused(scans, tmp_path):
     write_exr(small, photo[:, :-3])
     _refused(["decompose", "--isf", isf_dir, small, "-o", tmp_path / "o1", "--no-cache"], tmp_path / "o1",
              str(small), "pixels")
+    shifted = tmp_path / "shifted.exr"
+    write_exr(shifted, photo, attributes={"ilt:pixel_origin": [0.5, 0.5], "ilt:pixel_scale": 2.0})
+    _refused(["decompose", "--isf", isf_dir, shifted, "-o", tmp_path / "o3", "--no-cache"], tmp_path / "o3",
+             str(shifted), "pixel mapping")
     holes = photo.copy()
     holes[2, 5] = np.nan
     holes[4, 9] = np.inf

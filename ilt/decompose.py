@@ -6,6 +6,7 @@ so decomposing the next photo of the same scene costs only the solves.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -23,8 +24,11 @@ from ilt.imageio import ImageError, read_exr, write_exr
 from ilt.isf import ISF
 from ilt.layout import sample_frame, splat, vector_to_image
 from ilt.manifest import (
+    MANIFEST,
+    StageError,
     fingerprint_array,
     fingerprint_file,
+    read_manifest,
     save_npy,
     staged_directory,
     write_json,
@@ -117,28 +121,84 @@ def load_operator(
     entry = cache_dir / "operators" / key if cache_dir is not None else None
     if entry is not None and (entry / "diagnostics.json").exists():
         try:
-            arrays = {name: np.load(entry / f"{name}.npy", allow_pickle=False) for name in _CACHE_ARRAYS}
-            diagnostics = json.loads((entry / "diagnostics.json").read_text())
-            op = CancellationOperator(
-                factors=np.asfortranarray(arrays["factors"]), perm=arrays["perm"], t1_unit=arrays["t1_unit"],
-                column_norms=arrays["column_norms"], rcond=diagnostics["rcond"],
-            )
+            op, diagnostics = _read_cached_operator(entry, T.shape[0])
             log.info("operators for T %s… read from the cache %s", key[:12], entry)
             return op, {**diagnostics, **notes, "cached": True}
         except (OSError, ValueError, KeyError) as exc:
-            log.warning("ignoring unreadable operator cache %s (%s); rebuilding", entry, exc)
+            log.warning("ignoring the operator cache %s (%s); rebuilding it", entry, exc)
     log.info("factorising T (m = %d)", T.shape[0])
     op = cancellation_operator(T)
     diagnostics = {**operator_diagnostics(T, op), "rcond": op.rcond}
     if entry is not None:
         try:
+            _remove_unchecked_entry(entry)
             with staged_directory(entry, force=True) as tmp:
                 for name in _CACHE_ARRAYS:
                     save_npy(tmp / f"{name}.npy", getattr(op, name))
                 write_json(tmp / "diagnostics.json", diagnostics)
-        except OSError as exc:
+                write_manifest(tmp, "operators", {"m": T.shape[0]})  # each file's sha256, checked on load
+        except (OSError, StageError) as exc:
             log.warning("could not cache the operators in %s (%s)", entry, exc)
     return op, {**diagnostics, **notes, "cached": False}
+
+
+def _remove_unchecked_entry(entry: Path) -> None:
+    """Remove a cache entry an older ilt wrote without manifest.json (so without the
+    sha256 of its files) when it holds only the cache's own files: it cannot be
+    checked, and a directory without a manifest is not one ilt replaces."""
+    own = {f"{name}.npy" for name in _CACHE_ARRAYS} | {"diagnostics.json"}
+    if not entry.is_dir() or (entry / MANIFEST).exists() or {p.name for p in entry.iterdir()} - own:
+        return
+    for p in entry.iterdir():
+        p.unlink()
+    entry.rmdir()
+
+
+class _HashingReader:
+    """A binary file read through sha256: ``np.load`` reads it in chunks (it is no real
+    file to numpy), so the array and its hash come from one read of the bytes."""
+
+    def __init__(self, f):
+        self._f, self.hash = f, hashlib.sha256()
+
+    def read(self, n=-1):
+        data = self._f.read(n)
+        self.hash.update(data)
+        return data
+
+    def seek(self, *args):  # np.load peeks at the magic string, then seeks back to the start
+        self.hash = hashlib.sha256()
+        return self._f.seek(*args)
+
+    def tell(self):
+        return self._f.tell()
+
+
+def _read_cached_operator(entry: Path, m: int) -> tuple[CancellationOperator, dict]:
+    """The operator in a cache entry, every file checked against the sha256 its
+    manifest.json recorded and every array against the shape of an (m, m) T.
+    ValueError (or OSError, KeyError) says what is wrong; the caller rebuilds."""
+    outputs = read_manifest(entry)["outputs"]
+    arrays = {}
+    for name in _CACHE_ARRAYS:
+        with open(entry / f"{name}.npy", "rb") as f:
+            reader = _HashingReader(f)
+            arrays[name] = np.load(reader, allow_pickle=False)
+            reader.read()  # bytes after the array are part of the file too
+        if "sha256:" + reader.hash.hexdigest() != outputs.get(f"{name}.npy"):
+            raise ValueError(f"{name}.npy differs from the sha256 its manifest.json recorded")
+        shape = (m, m) if name == "factors" else (m,)
+        if arrays[name].shape != shape:
+            raise ValueError(f"{name}.npy has shape {arrays[name].shape}, T needs {shape}")
+    text = (entry / "diagnostics.json").read_bytes()
+    if "sha256:" + hashlib.sha256(text).hexdigest() != outputs.get("diagnostics.json"):
+        raise ValueError("diagnostics.json differs from the sha256 its manifest.json recorded")
+    diagnostics = json.loads(text)
+    op = CancellationOperator(
+        factors=np.asfortranarray(arrays["factors"]), perm=arrays["perm"], t1_unit=arrays["t1_unit"],
+        column_norms=arrays["column_norms"], rcond=diagnostics["rcond"],
+    )
+    return op, diagnostics
 
 
 @dataclass(frozen=True)
@@ -334,19 +394,36 @@ def decompose(
     left out of the full-resolution images and counted.
 
     All inputs are read and checked before anything is written, so a bad input leaves
-    no output behind.
+    no output behind. Each ``out/<stem>`` is written to a temporary directory and
+    renamed into place on its own: a failure leaves the photos before it complete, and
+    a run again skips those (a log line each) whose ``out/<stem>`` records the same
+    photo, T and parameters; an ``out/<stem>`` made otherwise needs ``force``.
     """
     photos = [read_photo(p, isf) for p in inputs]
     stems = [p.name for p in photos]
     if len(set(stems)) != len(stems):
         raise InputError(f"two inputs share a name ({stems}); their results would collide in {out}")
     out = Path(out)
-    for stem in stems:
-        if (out / stem).exists() and not force:
-            raise InputError(f"{out / stem} exists; use --force to replace it")
     fingerprint = fingerprint_array(np.asarray(isf.T))
+    parameters = {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
+                  "samples_only": samples_only}
+    done = {}
+    for photo in photos:
+        if (out / photo.name).exists() and not force:
+            wanted = {fingerprint_file(photo.path), fingerprint}
+            previous = _previous_result(out / photo.name, parameters, wanted)
+            if previous is None:
+                raise InputError(f"{out / photo.name} exists and was not made from {photo.path} with these "
+                                 "options and this ISF; use --force to replace it")
+            done[photo.name] = previous
+    todo = [p for p in photos if p.name not in done]
+    for photo in photos:
+        if photo.name in done:
+            log.info("%s: %s is already decomposed with these options; kept", photo.path, out / photo.name)
+    if not todo:
+        return [done[p.name] for p in photos]
     fine, why = None, "--samples-only"
-    if not samples_only and any(p.frame for p in photos):
+    if not samples_only and any(p.frame for p in todo):
         try:
             fine, why = load_fine(isf, fingerprint)
         except FineError as exc:
@@ -361,9 +438,9 @@ def decompose(
     for w in op_diag["warnings"]:
         log.warning("%s: %s", isf.path, w)
     created = not out.exists()
-    summaries = []
+    summaries = {}
     try:
-        for photo in photos:
+        for photo in todo:
             dec = bounce_images(op, photo.values, n_bounces=n_bounces, tol=tol)
             diag = decomposition_diagnostics(photo.values, dec)
             for w in diag["warnings"]:
@@ -383,16 +460,29 @@ def decompose(
             with staged_directory(out / photo.name, force=force) as tmp:
                 write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1_unit * op.column_norms)
                 write_manifest(
-                    tmp, "decompose", {"bounces": n_bounces, "tol": tol},
+                    tmp, "decompose", parameters,
                     inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): op_diag["fingerprint"]},
                 )
             log.info("%s -> %s (%s)", photo.path, out / photo.name, diag["stop_reason"])
-            summaries.append({**summary, "output": str(out / photo.name)})
+            summaries[photo.name] = {**summary, "output": str(out / photo.name)}
     except BaseException:
         if created and out.exists() and not any(out.iterdir()):
             out.rmdir()
         raise
-    return summaries
+    return [done.get(p.name) or summaries[p.name] for p in photos]
+
+
+def _previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dict | None:
+    """The summary of an earlier decomposition in ``directory`` when its manifest records
+    ``parameters`` and exactly the fingerprints ``inputs`` (photo and T), else None."""
+    try:
+        manifest = read_manifest(directory)
+        summary = json.loads((directory / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if manifest.get("parameters") != parameters or set(manifest.get("inputs", {}).values()) != inputs:
+        return None
+    return {**summary, "output": str(directory), "skipped": True}
 
 
 __all__ = ["decompose", "read_photo", "load_operator", "InputError", "TransportError", "default_cache_dir"]

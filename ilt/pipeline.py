@@ -33,12 +33,16 @@ import numpy as np
 
 from ilt.capture.config import ConfigError, RigConfig, parse_config
 from ilt.capture.loop import LOG_NAME, capture
-from ilt.manifest import StageError, atomic_path, staged_directory, write_manifest
+from ilt.manifest import StageError, atomic_path, fingerprint_file, staged_directory, write_manifest
 from ilt.stage import (
+    DONE,
     MISSING,
     STALE,
     StageState,
+    changed_outputs,
     fingerprint_input,
+    input_evidence,
+    read_record,
     run_stage,
     stage_state,
     write_record,
@@ -292,35 +296,120 @@ def input_fingerprints(stage: Stage) -> dict[str, str]:
     return {name: fingerprint_input(path) for name, path in stage.inputs.items()}
 
 
-def workspace_status(ws: Workspace, cfg: RunConfig) -> list[StageState]:
-    """Each stage's state against ``cfg``; a stage after one that is not done cannot be done."""
+def input_evidences(stage: Stage) -> dict[str, str] | None:
+    """What a stage made by hand must name in its manifest's inputs (:func:`ilt.stage.stage_state`);
+    None once the stage has a run record (nothing is hashed then)."""
+    if read_record(stage.directory) is not None:
+        return None
+    return {name: input_evidence(path) for name, path in stage.inputs.items()}
+
+
+#: the state of a stage whose files differ from its manifest's fingerprints
+CHANGED = "changed"
+
+
+def _changed_state(stage: Stage, files: list[str]) -> StageState:
+    shown = ", ".join(files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
+    if stage.name == "capture":
+        fix = f"restore them from a backup, or move {stage.directory} aside and scan again"
+    else:
+        fix = f"remove {stage.directory} and 'ilt run' writes it again"
+    return StageState(stage.name, str(stage.directory), CHANGED,
+                      f"{shown} changed since {stage.name} wrote {'them' if len(files) > 1 else 'it'} ({fix})")
+
+
+def workspace_status(ws: Workspace, cfg: RunConfig, verify: str | None = None) -> list[StageState]:
+    """Each stage's state against ``cfg``; a stage after one that is not done cannot be done.
+
+    ``verify``: "quick" checks that a done stage's files are the ones its manifest
+    fingerprints, re-hashing only those whose size or modification time changed since
+    its run record; "full" re-hashes every file. A stage whose files differ is
+    ``changed`` (the stages after it are judged as usual: they were made from the
+    files as they were).
+    """
     states: list[StageState] = []
     by_dir = {}
     for stage in plan_stages(ws, cfg):
-        blocked = [n for n, p in stage.inputs.items() if p in by_dir and not by_dir[p].done]
+        blocked = [n for n, p in stage.inputs.items() if p in by_dir and by_dir[p].state not in (DONE, CHANGED)]
         if blocked:
             complete = (stage.directory / "manifest.json").exists()
             s = StageState(stage.name, str(stage.directory), STALE if complete else MISSING,
                            f"after {', '.join(by_dir[stage.inputs[n]].stage for n in blocked)}" if complete else "")
         else:
             try:
-                s = stage_state(stage.directory, stage.name, stage.parameters, input_fingerprints(stage))
+                s = stage_state(stage.directory, stage.name, stage.parameters, input_fingerprints(stage),
+                                input_evidences(stage))
             except (StageError, OSError) as exc:
                 s = StageState(stage.name, str(stage.directory), MISSING, str(exc))
+        if s.done and verify:
+            files = changed_outputs(stage.directory, full=verify == "full")
+            if files:
+                s = _changed_state(stage, files)
         states.append(s)
         by_dir[stage.directory] = s
     return states
 
 
+def check_unchanged(ws: Workspace, cfg: RunConfig) -> None:
+    """StageError naming the first file of a done stage that no longer matches its
+    manifest: a run must not build on it, nor call it up to date. A stat per file;
+    only files whose size or modification time moved are hashed."""
+    for s in workspace_status(ws, cfg, verify="quick"):
+        if s.state == CHANGED:
+            raise StageError(f"{s.directory}: {s.reason}")
+
+
+#: beside WORKSPACE/rig.toml: the fingerprint of the config `ilt run` last copied there
+INSTALLED = ".rig.toml.installed"
+
+
+def config_differences(old: str, new: str) -> str:
+    """Which sections and keys of two rig TOML texts differ, e.g. "[merge] margin, [plan] count"."""
+    try:
+        a, b = tomllib.loads(old), tomllib.loads(new)
+    except tomllib.TOMLDecodeError:
+        return "it is not valid TOML"
+    out = []
+    for section in sorted(set(a) | set(b)):
+        x, y = a.get(section), b.get(section)
+        if x == y:
+            continue
+        if isinstance(x, (dict, type(None))) and isinstance(y, (dict, type(None))):
+            x, y = x or {}, y or {}
+            keys = sorted(k for k in set(x) | set(y) if x.get(k) != y.get(k))
+            out.append(f"[{section}] {', '.join(keys)}")
+        else:
+            out.append(section)
+    return ", ".join(out) or "comments or layout only"
+
+
 def install_config(ws: Workspace, cfg: RunConfig) -> None:
-    """Keep the run's config as WORKSPACE/rig.toml (what `ilt status` compares against)."""
+    """Keep the run's config as WORKSPACE/rig.toml (what `ilt status` compares against).
+
+    A rig.toml that is not the copy the last `ilt run` made (edited by hand, or written
+    by someone else) is never overwritten: it is moved aside to rig.toml.previous-N,
+    with a warning naming what differs and where it went.
+    """
     ws.root.mkdir(parents=True, exist_ok=True)
-    if ws.config.exists() and ws.config.resolve() == cfg.path.resolve():
-        return
-    if ws.config.exists() and ws.config.read_text() == cfg.text:
-        return
+    marker = ws.root / INSTALLED
+    if ws.config.exists():
+        if ws.config.resolve() == cfg.path.resolve():
+            return
+        old = ws.config.read_text()
+        if old == cfg.text:
+            return
+        ours = marker.exists() and marker.read_text().strip() == fingerprint_file(ws.config)
+        if not ours:
+            k = 1
+            while (aside := ws.config.with_name(f"{ws.config.name}.previous-{k}")).exists():
+                k += 1
+            os.replace(ws.config, aside)
+            log.warning("%s: edited since 'ilt run' copied it (differs from %s in %s); kept as %s",
+                        ws.config, cfg.path, config_differences(old, cfg.text), aside)
     with atomic_path(ws.config) as tmp:
         tmp.write_text(cfg.text)
+    with atomic_path(marker) as tmp:
+        tmp.write_text(fingerprint_file(ws.config) + "\n")
 
 
 def check_capture(stage: Stage, force: bool) -> StageState:
@@ -338,6 +427,8 @@ def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool) -> boo
     state = check_capture(stage, force)
     if state.done and not force:
         log.info("capture: up to date (%s)", stage.directory)
+        if read_record(stage.directory) is None:  # shot by `ilt capture`: recorded as if run here
+            write_record(stage.directory, "capture", stage.parameters, {})
         return False
     if state.state == STALE or (state.done and force):
         k = 1
@@ -359,7 +450,10 @@ def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool) -> boo
 def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False) -> list[dict]:
     """Run every stage that is not up to date, in order. Returns one summary per stage."""
     stages = plan_stages(ws, cfg)
-    check_capture(stages[0], force)   # before the config is installed: a refused run changes nothing
+    # before the config is installed: a refused run changes nothing
+    check_capture(stages[0], force)
+    if not force:  # --force writes every stage again (the scan moved aside): nothing is built on
+        check_unchanged(ws, cfg)
     install_config(ws, cfg)
     _remove_scratch(ws)  # frames a killed run kept
     try:
@@ -376,7 +470,7 @@ def _run_stages(ws: Workspace, cfg: RunConfig, stages: list[Stage], force: bool)
             ran = run_capture(ws, stage, cfg, force)
         else:
             ran, _ = run_stage(stage.directory, stage.name, stage.parameters, input_fingerprints(stage),
-                               stage.make, force=force)
+                               stage.make, force=force, evidence=input_evidences(stage))
         summaries.append({"stage": stage.name, "directory": str(stage.directory),
                           "ran": ran, "seconds": round(time.monotonic() - t0, 3)})
     return summaries

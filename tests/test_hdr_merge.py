@@ -134,7 +134,7 @@ def test_capture_directory_to_hdr_directory(tmp_path):
     assert again.exit_code == 1 and "exists" in again.output
 
 
-def test_merge_takes_fingerprints_from_the_capture_log(tmp_path):
+def test_merge_hashes_the_frames_it_reads_against_the_capture_log(tmp_path):
     from ilt.capture.loop import LOG_NAME, CaptureLog
     from ilt.hdr.stages import merge_capture
     from ilt.manifest import fingerprint_file
@@ -144,22 +144,26 @@ def test_merge_takes_fingerprints_from_the_capture_log(tmp_path):
     cap = tmp_path / "cap"
     for b in range(2):
         write_bracket(cap / f"beam-{b:05d}", X, PAPER_BRACKET[5:8], SENSOR, rng)
+    real = {f"beam-{b:05d}/frame-{k:02d}.dng": fingerprint_file(cap / f"beam-{b:05d}" / f"frame-{k:02d}.dng")
+            for b in range(2) for k in range(3)}
     journal = CaptureLog(cap / LOG_NAME)  # records as `ilt capture` writes them
     journal.append("frame", beam=0, file="beam-00000/frame-00.dng", sha256="sha256:before-resume")
     journal.append("set_aside", beam=0, to=".incomplete/beam-00000-1")
-    for k in range(3):
-        journal.append("frame", beam=0, file=f"beam-00000/frame-{k:02d}.dng", sha256=f"sha256:logged-{k}")
-    journal.append("frame", beam=1, file="beam-00001/frame-01.dng", sha256="sha256:logged-b1")
+    for k in range(3):   # the latest record of a frame counts
+        journal.append("frame", beam=0, file=f"beam-00000/frame-{k:02d}.dng", sha256=real[f"beam-00000/frame-{k:02d}.dng"])
+    journal.append("frame", beam=1, file="beam-00001/frame-01.dng", sha256=real["beam-00001/frame-01.dng"])
     journal.close()
     merge_capture(cap, tmp_path / "hdr")
     manifest = json.loads((tmp_path / "hdr" / "manifest.json").read_text())
-    inputs = manifest["inputs"]
-    # logged fingerprints are taken as they are (not re-hashed); the latest record counts
-    assert [inputs[f"beam-00000/frame-{k:02d}.dng"] for k in range(3)] == [f"sha256:logged-{k}" for k in range(3)]
-    assert inputs["beam-00001/frame-01.dng"] == "sha256:logged-b1"
-    for name in ("frame-00.dng", "frame-02.dng"):  # not in the log: hashed
-        assert inputs[f"beam-00001/{name}"] == fingerprint_file(cap / "beam-00001" / name)
-    assert manifest["fingerprints"] == {"from_capture_log": 4, "hashed": 2}
+    assert {k: manifest["inputs"][k] for k in real} == real      # hashed as read, never copied from the log
+    assert manifest["fingerprints"] == {"hashed": 6, "checked_against_capture_log": 4}
+    # a frame that is not the one the capture logged is refused, naming it
+    journal = CaptureLog(cap / LOG_NAME)
+    journal.append("frame", beam=1, file="beam-00001/frame-02.dng", sha256="sha256:another-frame")
+    journal.close()
+    with pytest.raises(ValueError, match="beam-00001/frame-02.dng"):
+        merge_capture(cap, tmp_path / "hdr2")
+    assert not (tmp_path / "hdr2").exists()
 
 
 @pytest.mark.parametrize("fault", ["truncated", "not-raw", "mixed-size", "mixed-camera", "no-time", "saturated", "missing"])

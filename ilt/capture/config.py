@@ -185,7 +185,13 @@ def parse_config(raw: dict, where: str = "<config>") -> RigConfig:
     _check(plan.units in ("degrees", "steps"), f"{where}: [plan] units {plan.units!r} unknown (degrees, steps)")
     if not isinstance(out, dict):
         out = {"directory": out}
-    return RigConfig(where, str(out.get("directory", "capture")), ptu, laser, camera, bracket, dark, plan)
+    directory = str(out.get("directory", "capture"))
+    # a config says where in the workspace a capture goes; elsewhere is for -o to say
+    parts = Path(directory).parts
+    _check(bool(parts) and not Path(directory).is_absolute() and ".." not in parts,
+           f"{where}: [output] directory {directory!r} must be a relative path inside the workspace "
+           "(no '..', not absolute); give 'ilt capture -o DIR' to write elsewhere")
+    return RigConfig(where, directory, ptu, laser, camera, bracket, dark, plan)
 
 
 def _check(ok: bool, message: str) -> None:

@@ -20,6 +20,12 @@ def command(config, workspace, force, as_json):
     parameters and inputs have not changed since it ran is skipped; a changed one
     re-runs with every stage after it; an interrupted capture is resumed.
 
+    CONFIG is copied to WORKSPACE/rig.toml; a rig.toml edited since the last run copied
+    it is moved aside to rig.toml.previous-N first (a warning names what differs),
+    never overwritten. A run refuses to start when a done stage's files differ from
+    its manifest (`ilt status --verify` lists them all). Stages made by hand (ilt
+    merge, centroids, build-isf) with the config's parameters count as done.
+
     Prints the workspace's stage directories; `ilt status` says what is up to date.
     """
     from ilt.pipeline import run_pipeline, workspace_config

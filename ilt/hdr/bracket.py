@@ -108,7 +108,12 @@ def list_beams(capture_dir: str | os.PathLike) -> list[Path]:
     if beams is None:
         dirs = sorted(p for p in capture_dir.glob(BEAM_GLOB) if p.is_dir())
     else:
-        dirs = [capture_dir / str(b) for b in beams]
+        for b in beams:
+            # a listed beam is read from inside the capture, never from elsewhere
+            if not isinstance(b, str) or Path(b).name != b or b in ("", ".", ".."):
+                raise CaptureError(f"{top}: beams entry {b!r} must be the name of a beam directory inside "
+                                   f"{capture_dir} (like 'beam-00000'); fix the manifest")
+        dirs = [capture_dir / b for b in beams]
     if not dirs:
         raise CaptureError(f"{capture_dir}: no beam-NNNNN directories (see docs/hdr.md)")
     return dirs

@@ -8,6 +8,7 @@ given by hand (``--times``). These are nominal values: a camera's 1/125 s is rea
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -91,6 +92,29 @@ def _ratio(tag) -> Fraction | None:
     return value if value > 0 else None
 
 
+#: how far (in stops) a frame's EXIF may be from its manifest's nominal value: cameras
+#: write 1/128 s for a nominal 1/125 s (0.03 stop), while the nearest other setting of a
+#: bracket is at least 1/3 stop away
+EXIF_TOLERANCE_STOPS = 1 / 6
+
+
+def check_exif(path, time: Fraction | None, f_number: Fraction | None,
+               exif_time: Fraction | None, exif_f_number: Fraction | None) -> None:
+    """ExposureError naming ``path`` when the EXIF exposure time or f-number is not the
+    manifest's (a frame of another exposure copied over this one); facts either side
+    leaves out are not compared."""
+    def stops(a, b, per):
+        return a is not None and b is not None and abs(math.log2(a / b)) * per > EXIF_TOLERANCE_STOPS
+
+    if stops(time, exif_time, 1) or stops(f_number, exif_f_number, 2):
+        raise ExposureError(
+            f"{path}: the manifest says {time if time is not None else '?'} s at f/"
+            f"{_text(f_number, True) if f_number is not None else '?'}, its EXIF "
+            f"{exif_time if exif_time is not None else '?'} s at f/"
+            f"{_text(exif_f_number, True) if exif_f_number is not None else '?'}: not the frame "
+            "that was shot (restore the captured file, or capture the beam again)")
+
+
 def resolve_facts(path: Path, time_text: str | None, f_text: str | None, tags: dict | None = None,
                   rawpy_other=None, hand_time: Fraction | None = None) -> ExposureFacts:
     """The frame's facts: manifest text, else EXIF, else rawpy's ``other``, else ``hand_time``.
@@ -98,13 +122,15 @@ def resolve_facts(path: Path, time_text: str | None, f_text: str | None, tags: d
     ``tags``: the file's exifread tags if already read (else read from ``path``).
     The f-number defaults to the EXIF one, then to 1 with a hand-given time (a fixed
     aperture whose value cancels out of the exposure ratios).
-    Raises ExposureError naming ``path`` when no exposure time can be found.
+    Raises ExposureError naming ``path`` when no exposure time can be found, or when
+    the EXIF contradicts the manifest (:func:`check_exif`).
     """
     source = "manifest"
     time = parse_positive(time_text, "exposure time", path) if time_text is not None else None
     f_number = parse_positive(f_text, "f-number", path) if f_text is not None else None
+    exif_t, exif_n = exif_facts(read_exif(path) if tags is None else tags)
+    check_exif(path, time, f_number, exif_t, exif_n)
     if time is None or f_number is None:
-        exif_t, exif_n = exif_facts(read_exif(path) if tags is None else tags)
         if time is None and exif_t is not None:
             time, source = exif_t, "exif"
         f_number = f_number if f_number is not None else exif_n

@@ -23,7 +23,7 @@ from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
 from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
 from ilt.hdr.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
 from ilt.imageio import one_thread, write_exr, write_png
-from ilt.manifest import atomic_path, staged_directory, write_json, write_manifest
+from ilt.manifest import MANIFEST, atomic_path, fingerprint_file, staged_directory, write_json, write_manifest
 from ilt.workers import process_pool
 
 log = logging.getLogger(__name__)
@@ -80,15 +80,20 @@ class Frame:
 
 def read_frame(path: Path, record: FrameRecord | None = None, hand_time=None, *,
                margin: float = SATURATION_MARGIN, color: bool = False,
-               fingerprint: str | None = None) -> Frame:
-    """Read a RAW frame once and decode it from memory. Its bytes are hashed unless
-    ``fingerprint`` ("sha256:<hex>", as the capture logged it) is given."""
+               expected: str | None = None) -> Frame:
+    """Read a RAW frame once, hash those bytes and decode them from memory.
+
+    ``expected``: the fingerprint ("sha256:<hex>") the capture logged for the file;
+    a frame whose bytes differ is refused (RawError naming it) before it is decoded.
+    """
     try:
         data = path.read_bytes()
     except FileNotFoundError:
         raise RawError(f"{path}: no such file") from None
-    if fingerprint is None:
-        fingerprint = "sha256:" + hashlib.sha256(data).hexdigest()
+    fingerprint = "sha256:" + hashlib.sha256(data).hexdigest()
+    if expected is not None and fingerprint != expected:
+        raise RawError(f"{path}: its sha256 is not the one capture.jsonl logged when it was shot "
+                       "(a file copied over it?); restore the captured file, or capture the beam again")
     green, info = read_green(path, record.exposure_time if record else None,
                              record.f_number if record else None, hand_time, margin, data=data,
                              dtype=np.float32)
@@ -185,9 +190,11 @@ def merge_beam(beam_dir: str | os.PathLike, out_dir: str | os.PathLike, options:
                fingerprints: dict[str, str] | None = None) -> dict:
     """Merge one beam directory into ``out_dir/<beam>.exr``, ``.valid.png``, ``.saturated.png``.
 
-    ``fingerprints``: frame file name -> "sha256:<hex>" the capture recorded; files not
-    in it are hashed as they are read. Memory: one bracket. Returns a summary (beam,
-    files, inputs with fingerprints, how many were hashed here).
+    Every frame is hashed as it is read (the bytes decoded are the bytes hashed) and
+    its EXIF exposure checked against the beam manifest. ``fingerprints``: frame file
+    name -> "sha256:<hex>" the capture logged; a frame that differs is refused.
+    Memory: one bracket. Returns a summary (beam, files, inputs with the fingerprints
+    hashed here, how many were checked against the log).
     Raises RawError/MergeError/ExposureError naming the file at fault; writes nothing then.
     """
     bracket = read_beam(beam_dir)
@@ -195,7 +202,7 @@ def merge_beam(beam_dir: str | os.PathLike, out_dir: str | os.PathLike, options:
 
     def read(record: FrameRecord) -> Frame:
         return read_frame(bracket.path(record), record, margin=options.margin, color=options.color,
-                          fingerprint=known.get(record.file))
+                          expected=known.get(record.file))
 
     frames = [read(r) for r in bracket.frames]
     dark = read(bracket.dark) if bracket.dark else None
@@ -210,7 +217,7 @@ def merge_beam(beam_dir: str | os.PathLike, out_dir: str | os.PathLike, options:
     inputs = {f"{name}/{fr.info.path.name}": fr.fingerprint for fr in frames + ([dark] if dark else [])}
     return {"beam": name, "frames": len(frames), "saturated_pixels": int(saturated.sum()),
             "min_valid": int(count.min()), "inputs": inputs,
-            "hashed": sum(Path(f).name not in known for f in inputs),
+            "logged": sum(Path(f).name in known for f in inputs),
             "exposures": [fr.info.exposure.as_dict() for fr in frames]}
 
 
@@ -231,11 +238,15 @@ def merge_capture(
     renamed into place only when every beam succeeded: on any error an existing
     ``output`` is untouched and nothing half-written remains.
 
-    Input fingerprints come from the capture's log (``capture.jsonl``) where it recorded
-    them, so no frame is hashed twice; other files are hashed as they are read.
+    Input fingerprints are the hashes of the bytes merged (each frame is read once);
+    a frame whose hash is not the one the capture's log (``capture.jsonl``) recorded,
+    or whose EXIF exposure is not its manifest's, is refused. The capture's own
+    manifest.json is recorded among the inputs by its hash, which is how ``ilt run``
+    knows that a merge made by hand was made from this capture.
     """
     beams = list_beams(capture_dir)
     logged = logged_fingerprints(capture_dir)
+    top = Path(capture_dir) / MANIFEST
     with staged_directory(output, force=force) as tmp:
         summaries = _run_beams(beams, tmp, options, executor, workers, logged)
         clipped = [s for s in summaries if s["saturated_pixels"]]
@@ -244,10 +255,13 @@ def merge_capture(
                         "(add a shorter exposure or a smaller aperture to the bracket)", s["beam"],
                         s["saturated_pixels"])
         inputs = {k: v for s in summaries for k, v in s.pop("inputs").items()}
-        hashed = sum(s.pop("hashed") for s in summaries)
+        checked = sum(s.pop("logged") for s in summaries)
+        frames = len(inputs)
+        if top.exists():
+            inputs[MANIFEST] = fingerprint_file(top)
         first = summaries[0]
         write_manifest(tmp, "merge", parameters or {}, inputs, extra={
-            "fingerprints": {"from_capture_log": len(inputs) - hashed, "hashed": hashed},
+            "fingerprints": {"hashed": frames, "checked_against_capture_log": checked},
             "beams": [s["beam"] for s in summaries],
             "channels": ["R", "G", "B"] if options.color else ["Y"],
             "pixel_mapping": {"origin": [0.5, 0.5], "scale": 2.0,

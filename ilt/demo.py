@@ -19,10 +19,11 @@ import html
 import logging
 from pathlib import Path
 
+from ilt import __version__
 from ilt.decompose import decompose, load_operator
 from ilt.evaluate import bounce_isf_errors
 from ilt.isf import load_isf
-from ilt.manifest import atomic_path, staged_directory, write_json
+from ilt.manifest import MANIFEST, StageError, atomic_path, read_manifest, staged_directory, write_json, write_manifest
 from ilt.preview import matrix_panel
 from ilt.report import STYLE, fig5_matrices, write_report
 from ilt.sim import ILLUMINATIONS, make_scene
@@ -124,10 +125,38 @@ def run_rig(name: str, ws: Workspace, quick: bool, force: bool) -> Path:
     return write_report(ws)
 
 
-def run_demo(out: str | Path, quick: bool = False, force: bool = False) -> list[dict]:
-    """Both scenes: the simulated rig and the exact experiment; then OUT/report/index.html."""
-    out = Path(out)
+#: the stage named by the manifest.json that marks a demo's output directory
+DEMO_STAGE = "demo"
+
+
+def claim_output(out: Path, quick: bool) -> None:
+    """Make ``out`` the demo's: it must be absent, empty or an earlier demo's output
+    (else StageError, nothing touched); it is then marked by ``out/manifest.json``.
+
+    The mark lists no outputs: the demo's workspaces and stage directories below it
+    carry their own manifests, and no stage may replace ``out`` as a whole.
+    """
+    if out.is_dir() and any(out.iterdir()):
+        try:
+            manifest = read_manifest(out)
+        except StageError:
+            manifest = None
+        if not isinstance(manifest, dict) or manifest.get("stage") != DEMO_STAGE:
+            names = sorted(p.name for p in out.iterdir())
+            raise StageError(f"{out} holds files that are not an earlier 'ilt demo' output ({', '.join(names[:5])}"
+                             f"{' ...' if len(names) > 5 else ''}); choose an empty or new directory")
     out.mkdir(parents=True, exist_ok=True)
+    write_json(out / MANIFEST, {"stage": DEMO_STAGE, "ilt_version": __version__, "parameters": {"quick": quick},
+                                "inputs": {}, "outputs": {}})
+
+
+def run_demo(out: str | Path, quick: bool = False, force: bool = False) -> list[dict]:
+    """Both scenes: the simulated rig and the exact experiment; then OUT/report/index.html.
+
+    ``out`` must be absent, empty or an earlier demo's output (:func:`claim_output`).
+    """
+    out = Path(out)
+    claim_output(out, quick)
     results = []
     for name in DEMO_BEAMS:
         log.info("demo: %s scene, simulated rig in %s", name, out / name)
@@ -154,6 +183,7 @@ def results_page(path: Path, results: list[dict]) -> Path:
         (tmp / "index.html").write_text(
             f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>ilt demo</title><style>{STYLE}</style>"
             "</head><body><h1>ilt demo</h1>" + "\n".join(body) + "</body></html>\n")
+        write_manifest(tmp, "demo-report", {})
     return path / "index.html"
 
 

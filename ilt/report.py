@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.manifest import MANIFEST, read_manifest, staged_directory
+from ilt.manifest import MANIFEST, read_manifest, staged_directory, write_manifest
 from ilt.workspace import Workspace
 
 FIG5_BOUNCES = 4
@@ -104,7 +104,11 @@ th{background:#f4f4f4;font-weight:normal}.warn li{color:#a40}.ok{color:#070}.mis
 
 
 def write_report(workspace: Workspace, out: str | os.PathLike | None = None, force: bool = True) -> Path:
-    """Write ``out`` (default WORKSPACE/report) with index.html; returns its path."""
+    """Write ``out`` (default WORKSPACE/report) with index.html; returns its path.
+
+    ``out`` is replaced only when it is absent, empty or an earlier report holding no
+    file of anyone else's (:func:`ilt.manifest.staged_directory`).
+    """
     from ilt.decompose import default_cache_dir, load_operator
     from ilt.isf import load_isf
     from ilt.preview import matrix_panel
@@ -170,4 +174,5 @@ def write_report(workspace: Workspace, out: str | os.PathLike | None = None, for
                 "<p>Seitz, Matsushita &amp; Kutulakos, <i>A Theory of Inverse Light Transport</i> "
                 "(ICCV 2005), on this workspace.</p>" + "\n".join(sections) + "</body></html>\n")
         (tmp / "index.html").write_text(page)
+        write_manifest(tmp, "report", {})  # marks it as a report: only a report may replace it
     return out / "index.html"

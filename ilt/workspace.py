@@ -20,6 +20,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ilt.manifest import MANIFEST
+
 #: stage name -> its sub-directory, in pipeline order
 STAGE_DIRS = {
     "capture": "capture",
@@ -56,3 +58,13 @@ class Workspace:
     def resolve(self, given: str | os.PathLike | None, stage: str) -> str:
         """``given`` when a path was given, else the stage's directory in this workspace."""
         return str(given) if given is not None else str(self.stage_dir(stage))
+
+
+def workspace_marks(path: str | os.PathLike) -> list[str]:
+    """What makes ``path`` a workspace (its rig.toml, its stage directories), or [] when
+    it is not one: a stage directory (with its own manifest.json) is never a workspace."""
+    path = Path(path)
+    if (path / MANIFEST).exists():
+        return []
+    marks = [CONFIG] if (path / CONFIG).is_file() else []
+    return marks + [f"{sub}/" for sub in STAGE_DIRS.values() if (path / sub / MANIFEST).exists()]

@@ -20,7 +20,8 @@ def command(output, quick, force, as_json):
     build-isf and decompose of three photos, with OUTPUT/<scene>/report/index.html.
     OUTPUT/<scene>/exact/ holds the exact-ISF Fig. 5 experiment (fig5.png,
     fig5-errors.json). OUTPUT/report/index.html links them all; the Fig. 5 error
-    tables go to stderr. Running it again skips what is up to date.
+    tables go to stderr. Running it again skips what is up to date. OUTPUT must be
+    new, empty or an earlier demo's output (marked by its manifest.json).
     """
     from ilt.demo import error_table, run_demo
 

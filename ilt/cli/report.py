@@ -10,7 +10,8 @@ from ilt.cli.options import emit, json_option, workspace_option
 @click.command("report")
 @workspace_option
 @click.option("-o", "--output", type=click.Path(file_okay=False), default=None,
-              help="Report directory (default WORKSPACE/report; replaced).")
+              help="Report directory (default WORKSPACE/report); replaced only when it is new, empty "
+                   "or an earlier report.")
 @json_option
 def command(workspace, output, as_json):
     """Write WORKSPACE/report/index.html and the PNGs it shows: the scene with its

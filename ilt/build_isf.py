@@ -249,11 +249,11 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                 coefficients, raw, squares, scales, CellGeometry.from_labels(labels, m), fine_degree)
             del coefficients, squares
             write_fine(tmp, stored, fine_degree, T, fingerprint_array(labels), frames_inputs(hdr.path), share)
-        fields = {"sampling": sampling, "beams": plan, "drops": drops, "plan_m": hdr.m,
+        fields = {"sampling": sampling, "beams": plan, "drops": drops,
                   "pixel_mapping": hdr.mapping.as_dict()}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan)
         save_npy(tmp / SCALES_FILE, scales)
-        save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)")
+        save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")
         parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
                       "max_cell_radius": max_cell_radius, "fine_degree": fine_degree}
         inputs = {str(spots_dir / SPOTS_FILE): read_manifest(spots_dir)["outputs"].get(SPOTS_FILE, "")

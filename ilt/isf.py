@@ -77,12 +77,17 @@ def write_isf(
     frame_shape: tuple[int, int], beams: list[int] | None = None,
 ) -> dict:
     """Write ``T.npy`` and ``samples.csv`` into ``directory``; return the manifest fields
-    (``layout``, ``frame_shape``, ``m``) the caller records. ``beams``: plan beam of each
-    row (default 0..m-1)."""
+    the caller records: ``m`` (rows of T), ``plan_m`` and ``layout`` (the plan's beams and
+    their rows x cols, kept when beams were dropped so vectors show in the plan's
+    places), ``dropped_beams`` (the plan beams with no row in T: the gaps) and
+    ``frame_shape``. ``beams``: plan beam of each row (default 0..m-1)."""
     directory = Path(directory)
     save_npy(directory / T_FILE, np.asarray(T, dtype=np.float64))
     write_samples(directory / SAMPLES_FILE, samples, beams)
-    return {"m": int(T.shape[0]), "layout": list(layout), "frame_shape": list(frame_shape)}
+    plan_m = int(layout[0]) * int(layout[1])
+    kept = set(range(len(samples)) if beams is None else (int(b) for b in beams))
+    return {"m": int(T.shape[0]), "plan_m": plan_m, "layout": list(layout),
+            "dropped_beams": [j for j in range(plan_m) if j not in kept], "frame_shape": list(frame_shape)}
 
 
 def write_samples(path: str | os.PathLike, samples: np.ndarray, beams: list[int] | None = None) -> None:

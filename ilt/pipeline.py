@@ -424,12 +424,15 @@ def check_capture(stage: Stage, force: bool) -> StageState:
 def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool) -> bool:
     """The capture stage: resumed when interrupted; a scan that differs from the config
     is moved aside (never deleted) only with ``force``."""
+    from ilt.capture.camera import check_sim_camera
+
     state = check_capture(stage, force)
     if state.done and not force:
         log.info("capture: up to date (%s)", stage.directory)
         if read_record(stage.directory) is None:  # shot by `ilt capture`: recorded as if run here
             write_record(stage.directory, "capture", stage.parameters, {})
         return False
+    check_sim_camera(cfg.rig)   # an unknown scene or one too large: refused before anything moves
     if state.state == STALE or (state.done and force):
         k = 1
         while (aside := stage.directory.with_name(f"{stage.directory.name}.previous-{k}")).exists():

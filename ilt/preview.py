@@ -98,6 +98,8 @@ def save_png(
     log: bool = True,
     title: str | None = None,
     floor_decades: float = 6.0,
+    xlabel: str | None = None,
+    ylabel: str | None = None,
 ) -> Path:
     """Draw a 2D array as a PNG with a colorbar; return the path written.
 
@@ -106,7 +108,8 @@ def save_png(
     The PNG is IMAGE_SIZE (640 x 480): the array (max-pooled to at most
     `_MAX_IMAGE_PIXELS` a side, so a thin diagonal survives; strips thinner than 1:8
     stretched to 1:8) in matplotlib's magma colours, first and last index on each
-    axis, a colorbar with its scale and the title.
+    axis with the axis names `xlabel` (columns) and `ylabel` (rows) when given, a
+    colorbar with its scale and the title.
     """
     import cv2
 
@@ -135,6 +138,12 @@ def save_png(
     picture = cv2.applyColorMap(cv2.resize(level, (dw, dh), interpolation=cv2.INTER_NEAREST), cv2.COLORMAP_MAGMA)
     _paste(canvas, picture, x0, y0)
     _axis_ends(canvas, x0, y0, dw, dh, rows, cols)
+    if xlabel is not None:  # below the end indices, which sit 16 pixels under the picture
+        _text(canvas, xlabel, (x0 + dw // 2, y0 + dh + 32), 0.45, align="centre")
+    if ylabel is not None:  # left of the end indices (right-aligned 4 pixels off the picture)
+        length = max(dh, _text_width(ylabel, 0.42) + 8)
+        top = max(0, min(y0 + (dh - length) // 2, height - length))
+        _vertical_text(canvas, ylabel, x0 - 60, top, length)
     _colour_bar(canvas, (551, by0, 19, bh), cv2.COLORMAP_MAGMA,
                 [((t - low) / (high - low), f"{t:.3g}") for t in ticks])
     _vertical_text(canvas, label, width - 24, by0, bh)

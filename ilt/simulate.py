@@ -20,6 +20,7 @@ from ilt.isf import write_isf
 from ilt.layout import splat
 from ilt.manifest import save_npy, staged_directory, write_manifest
 from ilt.sim import ILLUMINATIONS, Scene
+from ilt.sim.memory import require
 
 #: the largest m for which the (N, m, m) true n-bounce ISFs are written
 TRUTH_ISF_MAX_M = 2048
@@ -39,6 +40,8 @@ def write_simulation(
     bounces (the paper used 7); None gives the exact T.
     """
     out = Path(out)
+    if scene.m <= TRUTH_ISF_MAX_M:  # (N, m, m) float64
+        require(8 * n_bounces * scene.m**2, f"the {n_bounces} true n-bounce ISFs of {scene.m} beams")
     T, scale = scene.isf(max_bounces=max_bounces)
     with staged_directory(out, force=force) as tmp:
         fields = write_isf(tmp, T, scene.samples, scene.layout, scene.frame_shape)
@@ -81,6 +84,9 @@ def write_frames(scene, out: str | os.PathLike, parameters: dict, n_bounces: int
     from ilt.isf import write_samples
 
     out = Path(out)
+    # a photo's true bounces: (N, H, W) float32 frames
+    require(4 * n_bounces * scene.frame_shape[0] * scene.frame_shape[1],
+            f"the {n_bounces} true bounce frames of each photo")
     with staged_directory(out, force=force) as tmp:
         hdr, truth = tmp / "hdr", tmp / "truth"
         for d in (hdr, truth / "photos", tmp / "photos"):

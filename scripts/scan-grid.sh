@@ -7,6 +7,10 @@ set -euo pipefail
 rig=${1:?usage: scan-grid.sh RIG.toml WORKSPACE}
 ws=${2:?usage: scan-grid.sh RIG.toml WORKSPACE}
 mkdir -p "$ws"
+# the workspace keeps its config, as `ilt run` does, so that `ilt status -w WS` works
+if [[ "$(realpath "$rig")" != "$(realpath -m "$ws/rig.toml")" ]]; then
+    cp "$rig" "$ws/rig.toml"
+fi
 resume=()
 [[ -f "$ws/capture/capture.jsonl" ]] && resume=(--resume)
 [[ -f "$ws/capture/manifest.json" ]] || ilt capture "$rig" -o "$ws/capture" "${resume[@]}"

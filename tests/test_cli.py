@@ -167,11 +167,14 @@ def test_usage_error_exit_code():
 
 
 def test_existing_output_is_kept_without_force(isf_dir, tmp_path):
+    """The same photo, ISF and options again: skipped; other options: refused without --force."""
     out = tmp_path / "out"
     photo = isf_dir / "photos" / "room.npy"
     run("decompose", "--isf", isf_dir, photo, "-o", out, "--no-cache")
     before = (out / "room" / "bounces.npy").read_bytes()
-    result = run("decompose", "--isf", isf_dir, photo, "-o", out, "--no-cache", ok=False)
+    run("decompose", "--isf", isf_dir, photo, "-o", out, "--no-cache")
+    assert (out / "room" / "bounces.npy").read_bytes() == before
+    result = run("decompose", "--isf", isf_dir, photo, "-o", out, "--no-cache", "--bounces", 3, ok=False)
     assert result.exit_code == 1 and "--force" in result.output
     assert (out / "room" / "bounces.npy").read_bytes() == before
     run("decompose", "--isf", isf_dir, photo, "-o", out, "--no-cache", "--force", "--bounces", 3)

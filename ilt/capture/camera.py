@@ -255,3 +255,22 @@ def verify_setting(name: str, wanted: str, got: str, model: str) -> str:
             raise CameraError(f"camera {model}: {name} reads back {got!r} after setting {wanted!r} "
                               "(the driver reported success); check the mode dial and lens")
     return got
+
+
+def check_sim_camera(cfg) -> None:
+    """Refuse a simulated camera that cannot render the plan, before the capture directory
+    is made: an unknown [camera] scene, or a scene too large for the memory available."""
+    if cfg.camera.backend != "sim":
+        return
+    from ilt.capture.config import ConfigError
+    from ilt.capture.plan import planned_beams
+    from ilt.sim.memory import render_bytes, require
+    from ilt.sim.render import DEFAULT_FINE, FRAME_SCENES, SUPERSAMPLE
+
+    if cfg.camera.scene not in FRAME_SCENES:
+        raise ConfigError(f"{cfg.path}: [camera] scene {cfg.camera.scene!r} unknown "
+                          f"(known: {', '.join(FRAME_SCENES)})")
+    beams = planned_beams(cfg.plan)
+    require(render_bytes(cfg.camera.scene, beams, DEFAULT_FINE, cfg.camera.px_per_beam, SUPERSAMPLE),
+            f"{cfg.path}: the simulated camera's scene {cfg.camera.scene!r} for {beams} beams")
+

@@ -91,3 +91,13 @@ def check_limits(steps: np.ndarray, limits: dict[str, int]) -> None:
             raise ConfigError(
                 f"[plan] beam {j}: {axis} {int(steps[j, col])} steps is outside the unit's limits "
                 f"[{lo}, {hi}] ({bad.size} beam(s) out of range); narrow the plan")
+
+
+def planned_beams(plan) -> int:
+    """The beams a [plan] table makes, counted without building it (a plan of 1e8 beams
+    would take gigabytes of angles first)."""
+    if plan.kind == "grid":  # a malformed shape counts none: make_plan refuses it
+        return int(plan.shape[0]) * int(plan.shape[1]) if len(plan.shape) == 2 else 0
+    if plan.kind == "list":
+        return len(plan.points)
+    return int(plan.count)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from ilt.cli.options import emit, json_option, note
+from ilt.cli.options import bounces_option, emit, json_option, note
 
 
 def _list(kind):
@@ -39,7 +39,7 @@ def _list(kind):
                    "regularised (denoised T, then dense) runs on noisy T only; a solver that refuses T "
                    "(series on a dense T) gets a row saying why.")
 @click.option("--batch", type=click.IntRange(min=1), default=16, show_default=True, help="Photos decomposed at once.")
-@click.option("--bounces", "n_bounces", type=click.IntRange(min=1), default=8, show_default=True)
+@bounces_option
 @click.option("--repeats", type=click.IntRange(min=1), default=3, show_default=True, help="Timings per figure (median).")
 @click.option("--draws", type=click.IntRange(min=0), default=8, show_default=True,
               help="Noise draws for the bias/variance study of regularisation (0: skip it).")

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import click
 
-from ilt.cli.centroids import _count, workers_option
+from ilt.cli.centroids import _count
 from ilt.cli.options import (
     emit,
     force_option,
     json_option,
     progress_bar,
+    require_dir,
     stage_output_option,
+    workers_option,
     workspace_option,
 )
 
@@ -39,8 +41,8 @@ from ilt.cli.options import (
 @json_option
 def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, max_cell_radius, fine_degree,
             no_fine, workers, workspace, force, as_json):
-    """Build the ISF directory OUTPUT from the beam frames in HDR_DIR and the spots in
-    SPOTS_DIR (from 'ilt centroids').
+    """Build the ISF directory (-o, default WORKSPACE/isf) from the beam frames in HDR_DIR
+    and the spots in SPOTS_DIR (from 'ilt centroids').
 
     Writes T.npy (unit columns), scales.npy, samples.csv, cells.exr and fine/ (cell
     sampling), T.png and manifest.json, the directory 'ilt decompose --isf' reads. Flagged beams
@@ -54,6 +56,8 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
 
     hdr_dir, spots_dir = workspace.resolve(hdr_dir, "merge"), workspace.resolve(spots_dir, "centroids")
     output = workspace.resolve(output, "build-isf")
+    require_dir(hdr_dir, "the HDR frames", "run 'ilt merge' first, or give HDR_DIR")
+    require_dir(spots_dir, "the spots", "run 'ilt centroids' first, or give SPOTS_DIR")
 
     with progress_bar(_count(hdr_dir), "build-isf") as update:
         summary = build_isf(hdr_dir, spots_dir, output, sampling=sampling, min_separation=min_separation,

@@ -8,7 +8,7 @@ from ilt.cli.options import emit, force_option, json_option, note
 
 
 @click.command("calibrate")
-@click.argument("inputs", nargs=-1, required=True, type=click.Path())
+@click.argument("inputs", nargs=-1, required=True, metavar="IMAGES_OR_DIR...", type=click.Path())
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="response.json to write (a .png plot is written beside it).")
 @click.option("--times", default=None, help="Exposure times when neither manifest nor EXIF has them, e.g. 1/15,1/30.")
@@ -27,7 +27,7 @@ from ilt.cli.options import emit, force_option, json_option, note
 def command(inputs, output, times, order, max_order, pin_span, tolerance, no_plot, force, as_json):
     """Estimate the inverse response f and true exposure ratios from IMAGES_OR_DIR.
 
-    INPUTS: the frames of one bracket (RAW, or 8/16-bit TIFF/PNG/JPEG), a beam
+    IMAGES_OR_DIR: the frames of one bracket (RAW, or 8/16-bit TIFF/PNG/JPEG), a beam
     directory, or a capture directory (up to 8 beams pooled). Writes the polynomial
     coefficients, measured exposure ratios, residual and max |f(M) - M|.
     """

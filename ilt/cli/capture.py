@@ -5,10 +5,11 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from pathlib import Path
 
 import click
 
-from ilt.cli.options import emit, informing, json_option, workspace_option
+from ilt.cli.options import MissingInput, emit, informing, json_option, workspace_option
 
 log = logging.getLogger(__name__)
 
@@ -29,10 +30,16 @@ def command(config, output, resume, workspace, as_json):
     the laser off, and --resume goes on where the scan stopped. `configs/sim.toml`
     runs on the emulated rig.
     """
+    from ilt.capture.camera import check_sim_camera
     from ilt.capture.config import load_config
     from ilt.capture.loop import capture
 
-    cfg = load_config(config or workspace.config)
+    path = config or workspace.config
+    if not Path(path).is_file():
+        raise MissingInput(f"{path}: no such rig config; give a rig TOML (the simulated rig's is "
+                           "configs/sim.toml, docs/capture.md)")
+    cfg = load_config(path)
+    check_sim_camera(cfg)
     output = output or str(workspace.root / cfg.output)
     start = time.monotonic()
 
@@ -55,3 +62,4 @@ def command(config, output, resume, workspace, as_json):
         log.info("adaptive bracketing skipped %d of %d exposures (%.0f%%), about %.1f s saved",
                  skipped, full, 100 * skipped / full, summary["seconds_saved"])
     emit(as_json, summary, [summary["output"]])
+

@@ -9,12 +9,11 @@ from ilt.cli.options import (
     force_option,
     json_option,
     progress_bar,
+    require_dir,
     stage_output_option,
+    workers_option,
     workspace_option,
 )
-
-workers_option = click.option("--workers", type=click.IntRange(min=1), default=None,
-                              help="Worker processes (default: all cores; 1: in this process).")
 
 
 @click.command("centroids")
@@ -48,14 +47,16 @@ def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongatio
     name, optional manifest.json with the plan's layout), or of every beam of a capture
     directory at its shortest exposure, less its dark frame (the paper's choice).
 
-    Writes OUTPUT/spots.csv (beam,x,y,flux,peak,area,flags; x, y in full-frame sensor
+    Writes spots.csv (beam,x,y,flux,peak,area,flags; x, y in full-frame sensor
     pixels, centres at integer coordinates, (0, 0) the top-left, whatever the frames'
-    resolution), sum.exr (sum of the frames), overlay.png and manifest.json. Flagged
+    resolution), sum.exr (sum of the frames), overlay.png and manifest.json into -o
+    (default WORKSPACE/spots). Flagged
     beams are listed on stderr; build-isf drops them.
     """
     from ilt.spots import SpotParameters, run_centroids
 
     hdr_dir, output = workspace.resolve(hdr_dir, "merge"), workspace.resolve(output, "centroids")
+    require_dir(hdr_dir, "the HDR frames", "run 'ilt merge' first, or give HDR_DIR")
 
     if roi is not None:
         try:

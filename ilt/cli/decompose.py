@@ -54,9 +54,9 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
 
     INPUT is an EXR photo on the grid of the beam frames (integrated over the ISF's
     cells, or read at its sample pixels) or a .npy of sample vectors, shape (m,) or
-    (m, k). Results go to OUTPUT/<input stem>/: for an EXR photo and an ISF with a fine
-    operator (ilt build-isf writes isf/fine/), bounce-<n>.exr (n = 1..N), indirect.exr,
-    residual.exr and coverage.exr at the photo's own resolution (photo = sum of the
+    (m, k). Results go to <input stem>/ in -o (default WORKSPACE/decompose): for an EXR
+    photo and an ISF with a fine operator (ilt build-isf writes isf/fine/), bounce-<n>.exr
+    (n = 1..N), indirect.exr, residual.exr and coverage.exr at the photo's own resolution (photo = sum of the
     bounces + residual at every pixel; coverage 1 where the scan models a pixel's
     indirect light); always bounces.npy (N, m[, k]), residual.npy, samples/ (the
     sample-level images: a strip or grid in the ISF's layout, and *.frame.exr cell

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import click
 
-from ilt.cli.options import emit, force_option, json_option, workspace_option
+from ilt.cli.options import emit, force_option, json_option, require_dir, workers_option, workspace_option
 
 
 @click.command("merge")
-@click.argument("inputs", nargs=-1, type=click.Path())
+@click.argument("inputs", nargs=-1, metavar="[CAPTURE_DIR | RAW_FILES...]", type=click.Path())
 @click.option("-o", "--output", default=None, type=click.Path(),
               help="HDR directory to write (default WORKSPACE/hdr; an .exr file with --bracket).")
-@click.option("--bracket", is_flag=True, help="INPUTS are the RAW files of one hand-shot bracket.")
+@click.option("--bracket", is_flag=True, help="RAW_FILES are the frames of one hand-shot bracket.")
 @click.option("--times", default=None, help="Exposure times for --bracket files without EXIF, e.g. 1/15,1/30.")
 @click.option("--dark", type=click.Path(dir_okay=False), default=None, help="Dark frame for --bracket.")
 @click.option("--response", "response_path", type=click.Path(dir_okay=False), default=None,
@@ -26,26 +26,26 @@ from ilt.cli.options import emit, force_option, json_option, workspace_option
 @click.option("--compression", type=click.Choice(["zip:1", "zip", "zip:9", "zips", "piz"]), default="zip:1",
               show_default=True, help="Lossless EXR compression; zip:1 is deflate at its fastest level "
               "(noisy float data compresses little more at higher levels).")
-@click.option("-j", "--workers", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Beams merged in parallel (processes).")
+@workers_option
 @workspace_option
 @force_option
 @json_option
 def command(inputs, output, bracket, times, dark, response_path, gain, read_noise, margin, color,
             compression, workers, workspace, force, as_json):
-    """Merge each beam's RAW bracket of CAPTURE_DIR into HDR_DIR/beam-NNNNN.exr.
+    """Merge each beam's RAW bracket of CAPTURE_DIR (default WORKSPACE/capture) into
+    beam-NNNNN.exr of the HDR directory -o (default WORKSPACE/hdr).
 
     Dark frame subtracted, inverse response applied, noise-optimal weights
     (inverse variance), saturated and near-black samples left out. Beside each EXR:
     .valid.png (count of samples used) and .saturated.png (saturated in every frame).
-    With --bracket, INPUTS are one bracket's RAW files and -o names the .exr.
+    With --bracket, RAW_FILES are one bracket's frames and -o names the .exr.
     """
     from ilt.hdr.exposure import parse_times
     from ilt.hdr.merge import NoiseModel
     from ilt.hdr.stages import MergeOptions, load_response, merge_capture, merge_files
 
     if bracket and (not inputs or output is None):
-        raise click.UsageError("--bracket needs the RAW FILES and -o PHOTO.exr")
+        raise click.UsageError("--bracket needs the RAW_FILES and -o PHOTO.exr")
     inputs = inputs or (workspace.resolve(None, "capture"),)
     output = workspace.resolve(output, "merge")
     response = load_response(response_path) if response_path else None
@@ -55,8 +55,9 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
                                     parse_times(times) if times else None, dark, force)
     else:
         if len(inputs) != 1 or times or dark:
-            raise click.UsageError("give one CAPTURE_DIR (or --bracket FILES...); "
+            raise click.UsageError("give one CAPTURE_DIR (or --bracket RAW_FILES...); "
                                    "--times and --dark are for --bracket")
+        require_dir(inputs[0], "the capture", "run 'ilt capture' first, or give CAPTURE_DIR")
         params = {"gain": gain, "read_noise": read_noise, "margin": margin, "color": color,
                   "compression": compression, "response": response_path}
         path, summary = merge_capture(inputs[0], output, options, workers=workers, force=force,

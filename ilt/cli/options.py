@@ -5,7 +5,9 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import sys
+from pathlib import Path
 
 import click
 
@@ -17,10 +19,31 @@ output_option = click.option(
     "-o", "--output", "output", required=True, type=click.Path(file_okay=False),
     help="Directory to write (created; must not exist unless --force).",
 )
+#: more bounces than any scene keeps light for (a bounce keeps at most the albedo's fraction:
+#: 0.99^1000 = 4e-5); without a bound a typo such as 100000000 computes for days
+MAX_BOUNCES = 1000
 bounces_option = click.option(
-    "--bounces", "n_bounces", type=click.IntRange(min=1), default=8, show_default=True,
-    help="Number of bounce images N to compute.",
+    "--bounces", "n_bounces", type=click.IntRange(1, MAX_BOUNCES), default=8, show_default=True,
+    help=f"Number of bounce images N to compute (at most {MAX_BOUNCES}: after that many bounces at most "
+         "albedo^1000 of the light is left, 4e-5 even at albedo 0.99).",
 )
+workers_option = click.option(
+    "-j", "--workers", type=click.IntRange(min=1), default=lambda: os.cpu_count() or 1,
+    show_default="all cores",
+    help="Worker processes, one core each (1: in this process). No output depends on it.",
+)
+
+
+class MissingInput(ValueError):
+    """An input a command needs is not there."""
+
+
+def require_dir(path, what: str, hint: str) -> None:
+    """Raise :class:`MissingInput` naming ``path`` and how to make it, unless it is a directory."""
+    path = Path(path)
+    if not path.is_dir():
+        state = "not a directory" if path.exists() else "no such directory"
+        raise MissingInput(f"{path}: {state} ({what}); {hint}")
 
 
 def informing() -> bool:

@@ -44,12 +44,17 @@ from scipy.special import ndtr
 
 from .geometry import BOX_EYE, M_VERTICES, Geometry, box_geometry, m_geometry, occluded_geometry
 from .lighting import direct_light
+from .memory import render_bytes, require
 from .scene import _textured_albedo
 
 #: scenes that can be rendered as frames
 FRAME_SCENES = ("m", "textured", "occluded", "box")
 #: default beams per scene for frames
 DEFAULT_FRAME_BEAMS = {"m": 64, "textured": 64, "occluded": 64, "box": 3 * 6 * 6}
+#: default fine patches per beam spacing (flatland; the box uses a quarter per axis)
+DEFAULT_FINE = 16
+#: default sub-pixel rays per pixel axis
+SUPERSAMPLE = 4
 _MARGIN = 8
 
 
@@ -223,8 +228,8 @@ def _segment_weights(g: Geometry, targets, target_facet, sigma) -> np.ndarray:
 
 
 def render_scene(name: str, beams: int | None = None, albedo: float | None = None, seed: int = 0,
-                 spot: float = 0.05, fine: int = 16, px_per_beam: float = 32.0, rows: int | None = None,
-                 supersample: int = 4) -> RenderedScene:
+                 spot: float = 0.05, fine: int = DEFAULT_FINE, px_per_beam: float = 32.0, rows: int | None = None,
+                 supersample: int = SUPERSAMPLE) -> RenderedScene:
     """Build a renderable scene.
 
     Parameters:
@@ -239,6 +244,8 @@ def render_scene(name: str, beams: int | None = None, albedo: float | None = Non
         px_per_beam: pixels between neighbouring spots (flatland exactly; box about).
         rows: image rows of the extruded flatland frames (default: 32, more for wide spots).
         supersample: sub-pixel rays per pixel axis.
+    Raises: ValueError on a bad parameter; InsufficientMemory (a ValueError) when the
+        fine patches' transport would not fit in the memory available.
     """
     if name not in FRAME_SCENES:
         raise ValueError(f"unknown scene {name!r} for frames; choose one of {FRAME_SCENES}")
@@ -246,6 +253,8 @@ def render_scene(name: str, beams: int | None = None, albedo: float | None = Non
     albedo = 0.7 if albedo is None else float(albedo)
     if not 0 < spot <= 1:
         raise ValueError(f"spot must be in (0, 1] beam spacings, got {spot}")
+    require(render_bytes(name, beams, fine, px_per_beam, supersample),
+            f"rendering scene {name!r} with {beams} beams ({fine} fine patches per beam spacing)")
     if name == "box":
         return _render_box(beams, albedo, spot, fine, px_per_beam, supersample)
     return _render_flatland(name, beams, albedo, seed, spot, fine, px_per_beam, rows, supersample)

@@ -12,6 +12,7 @@ import numpy as np
 
 from .geometry import Geometry, box_geometry, m_geometry, occluded_geometry
 from .lighting import direct_light
+from .memory import require, scene_bytes
 
 SCENES = ("m", "box", "textured", "occluded")
 
@@ -159,7 +160,8 @@ def make_scene(name: str, beams: int | None = None, albedo: float | None = None,
             ``Scene.m`` is authoritative.
         albedo: uniform albedo in (0, 1] (default 0.7); "textured" varies about it.
         seed: random seed of the texture.
-    Raises: ValueError on an unknown name or a bad beams/albedo.
+    Raises: ValueError on an unknown name or a bad beams/albedo; InsufficientMemory
+        (a ValueError) when the scene would not fit in the memory available.
     """
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; choose one of {SCENES}")
@@ -168,6 +170,7 @@ def make_scene(name: str, beams: int | None = None, albedo: float | None = None,
     albedo = 0.7 if albedo is None else float(albedo)
     if not 0.0 < albedo <= 1.0:
         raise ValueError(f"albedo must be in (0, 1], got {albedo}")
+    require(scene_bytes(name, int(beams)), f"scene {name!r} with {beams} beams")
     geometry, samples, frame_shape, layout = _build(name, int(beams), albedo, seed)
     a, gain = geometry.collapsed
     v = geometry.visible

@@ -15,10 +15,13 @@ from ilt.cli.options import emit, json_option, note, workspace_option
 @click.option("--force", is_flag=True, help="Re-run every stage (a previous scan is moved aside, never deleted).")
 @json_option
 def command(config, workspace, force, as_json):
-    """Capture, merge, centroids, build-isf and decompose the photos of CONFIG (a rig
+    """Capture, merge, centroids, build-isf, photos and decompose for CONFIG (a rig
     TOML, default WORKSPACE/rig.toml) in the workspace, like make: a stage whose
     parameters and inputs have not changed since it ran is skipped; a changed one
-    re-runs with every stage after it; an interrupted capture is resumed.
+    re-runs with every stage after it; an interrupted capture is resumed. The photos
+    stage shoots and merges the [photos] sim illuminations on the simulated rig;
+    decompose splits them and the [photos] files, at full resolution when build-isf
+    made isf/fine/.
 
     CONFIG is copied to WORKSPACE/rig.toml; a rig.toml edited since the last run copied
     it is moved aside to rig.toml.previous-N first (a warning names what differs),

@@ -43,7 +43,15 @@ from ilt.fullres import (
 )
 from ilt.imageio import write_exr
 from ilt.isf import CELLS_FILE, SCALES_FILE, write_isf
-from ilt.manifest import fingerprint_array, read_manifest, save_npy, staged_directory, write_manifest
+from ilt.manifest import (
+    MANIFEST,
+    fingerprint_array,
+    fingerprint_file,
+    read_manifest,
+    save_npy,
+    staged_directory,
+    write_manifest,
+)
 from ilt.preview import save_png
 from ilt.spots import SPOTS_FILE, SUM_FILE, format_flags, read_spots
 
@@ -256,9 +264,12 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")
         parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
                       "max_cell_radius": max_cell_radius, "fine_degree": fine_degree}
-        inputs = {str(spots_dir / SPOTS_FILE): read_manifest(spots_dir)["outputs"].get(SPOTS_FILE, "")
-                  if (spots_dir / "manifest.json").exists() else ""}
-        inputs.update(read_manifest(spots_dir).get("inputs", {}) if (spots_dir / "manifest.json").exists() else {})
+        inputs = {str(spots_dir / SPOTS_FILE): ""}
+        if (spots_dir / MANIFEST).exists():   # the spots' manifest by its hash: what `ilt status` knows a stage by
+            spots_manifest = read_manifest(spots_dir)
+            inputs = {str(spots_dir / SPOTS_FILE): spots_manifest["outputs"].get(SPOTS_FILE, ""),
+                      str(spots_dir / MANIFEST): fingerprint_file(spots_dir / MANIFEST),
+                      **spots_manifest.get("inputs", {})}
         write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields})
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
 

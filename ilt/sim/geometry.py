@@ -236,7 +236,8 @@ def _perspective_samples(points: np.ndarray, extent: np.ndarray) -> tuple[np.nda
         depth = rel @ forward
         return np.stack([rel @ right / depth, -(rel @ up) / depth], axis=1)
 
-    uv, corners = project(points), project(extent)
+    uv = project(points)
+    corners = np.vstack([project(extent), uv])   # rounding puts a point near an edge a pixel past it
     scale = 2.0 / pdist(uv).min()
     origin = corners.min(axis=0)
     samples = _MARGIN + np.round(scale * (uv - origin))

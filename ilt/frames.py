@@ -23,7 +23,7 @@ import os
 import re
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import Executor
+from concurrent.futures import BrokenExecutor, Executor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +39,12 @@ _BEAM_NAME = re.compile(r"^beam-(\d+)\.exr$", re.IGNORECASE)
 
 class FrameError(ValueError):
     """An HDR directory or frame that cannot be used; the message names the file or beam."""
+
+
+class WorkerError(ChildProcessError):
+    """A worker process died (killed, out of memory, crashed, failed to start); the
+    message names the beams it was running. An OSError ("an operation on a child
+    process failed"), so that the CLI reports it in one line like a system error."""
 
 
 @dataclass(frozen=True)
@@ -308,7 +314,8 @@ def beam_executor(executor: Executor | None, workers: int | None) -> Iterator[Ex
 
     ``workers == 1`` runs in this process (yields None) on one core: OpenImageIO and
     OpenCV are held to one thread meanwhile, as in each of N worker processes, so that
-    ``-j N`` means N cores.
+    ``-j N`` means N cores. A pool of its own is stopped at once (queued chunks
+    cancelled, workers killed) when the block ends on an exception.
     """
     if executor is not None:
         yield executor
@@ -329,7 +336,8 @@ def run_chunks(function: Callable, tasks: Iterable[tuple], executor: Executor | 
     """``function(*task)`` for every task, in order, at most ``in_flight`` submitted at once.
 
     Each task's first item is a sequence of beams; ``progress(len(beams))`` is called
-    as each finishes. With ``executor`` None everything runs here.
+    as each finishes. With ``executor`` None everything runs here. A worker process
+    that dies raises :class:`WorkerError` naming the beams it was running.
     """
     if executor is None:
         for task in tasks:
@@ -339,15 +347,48 @@ def run_chunks(function: Callable, tasks: Iterable[tuple], executor: Executor | 
             yield result
         return
     pending: deque = deque()
-    for task in tasks:
-        pending.append((len(task[0]), executor.submit(function, *task)))
-        if len(pending) >= in_flight:
-            n, future = pending.popleft()
-            yield future.result()
-            if progress:
-                progress(n)
-    while pending:
-        n, future = pending.popleft()
-        yield future.result()
+    tasks = iter(tasks)
+    while True:
+        for task in tasks:
+            pending.append((task[0], executor.submit(function, *task)))
+            if len(pending) >= in_flight:
+                break
+        if not pending:
+            return
+        beams, future = pending[0]
+        try:
+            result = future.result()
+        except BrokenExecutor:
+            raise WorkerError(_lost_beams(executor, pending)) from None
+        pending.popleft()
+        yield result
         if progress:
-            progress(n)
+            progress(len(beams))
+
+
+def _lost_beams(executor: Executor, pending: deque) -> str:
+    """One line on a broken pool: the beams of the chunk each dead worker was running
+    (:meth:`ilt.workers.BeamPool.lost`), else of every chunk in flight."""
+    lost = getattr(executor, "lost", lambda: [])()
+    named = [(beams, how) for beams, future in pending for f, how in lost if f is future]
+    hows = {how for _, how in lost}
+    # the kernel's OOM killer sends SIGKILL; a worker that failed printed its error
+    hint = "out of memory? try fewer --workers" if any("SIGKILL" in h for h in hows) else \
+        "its error, if it printed one, is above"
+    if named:
+        return "; ".join(f"{_beam_list(beams)}: the worker process running them {how}"
+                         for beams, how in named) + f" ({hint})"
+    return (f"{_beam_list([b for beams, _ in pending for b in beams])}: a worker process "
+            f"{', '.join(sorted(hows)) or 'died'} before finishing them ({hint})")
+
+
+def _beam_list(beams: Sequence[int]) -> str:
+    """Beams as text: "beam 3", "beams 16-31", "beams 2, 5-7"."""
+    runs: list[list[int]] = []
+    for b in beams:
+        if runs and b == runs[-1][1] + 1:
+            runs[-1][1] = b
+        else:
+            runs.append([b, b])
+    text = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+    return f"beam{'s' if len(beams) > 1 else ''} {text}"

@@ -1,12 +1,13 @@
 """The ``ilt`` command line: thin wrappers that parse, call a library function, report.
 
 Exit codes: 0 success; 1 bad input or data (a one-line reason naming the file on
-stderr); 2 usage error; 130 interrupted.
+stderr); 2 usage error; 130 interrupted; 143 terminated (SIGTERM); 129 hung up (SIGHUP).
 """
 
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 
 import click
@@ -18,12 +19,35 @@ Exit codes:
   0    success
   1    bad input or data: one line on stderr names the file and the fault
   2    usage error (unknown option, missing argument)
-  130  interrupted (Ctrl-C); nothing partial is left behind"""
+  129  hung up (SIGHUP), 130 interrupted (Ctrl-C), 143 terminated (SIGTERM):
+       nothing partial is left behind"""
 
 
 #: bad input or data, as opposed to a bug: every ilt error class derives from ValueError,
-#: and OSError covers missing, unreadable and unwritable files
+#: and OSError covers missing, unreadable and unwritable files (and a worker process
+#: that died, ilt.frames.WorkerError)
 USER_ERRORS = (ValueError, OSError)
+
+#: signals that end ilt the way Ctrl-C does
+TERMINATING = (signal.SIGTERM, signal.SIGHUP)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised where Ctrl-C raises KeyboardInterrupt, so that every
+    cleanup path that handles Ctrl-C (a staged directory removed, the pool's workers
+    stopped, the laser switched off) handles these too."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _terminate(signum, frame) -> None:
+    # once: a second signal (a supervisor repeating itself) must not cut short the
+    # cleanup the first one started; SIGKILL still ends ilt
+    for s in TERMINATING:
+        signal.signal(s, signal.SIG_IGN)
+    raise Terminated(signum)
 
 
 class IltError(click.ClickException):
@@ -41,6 +65,9 @@ class IltGroup(click.Group):
             return super().invoke(ctx)
         except USER_ERRORS as exc:
             raise IltError(str(exc)) from None
+        except Terminated as exc:
+            click.echo(f"ilt: terminated ({exc}); nothing partial is left behind", err=True)
+            raise click.exceptions.Exit(128 + exc.signum) from None
         except KeyboardInterrupt:
             click.echo("ilt: interrupted", err=True)
             raise click.exceptions.Exit(130) from None
@@ -75,5 +102,15 @@ _register()
 
 
 def main() -> None:
-    """Console entry point."""
-    cli(prog_name="ilt")
+    """Console entry point: SIGTERM and SIGHUP end ilt like Ctrl-C (here only, so that a
+    program using the library keeps its own handlers), and no process of ilt's (the
+    pools' fork server, the resource tracker) outlives it."""
+    for s in TERMINATING:
+        signal.signal(s, _terminate)
+    try:
+        cli(prog_name="ilt")
+    finally:
+        for s in TERMINATING:  # ilt is exiting: let it finish doing so
+            signal.signal(s, signal.SIG_IGN)
+        if "ilt.workers" in sys.modules:  # a pool ran (not imported otherwise: it loads OpenImageIO)
+            sys.modules["ilt.workers"].stop_servers()

@@ -206,7 +206,11 @@ def _background_grid(img: np.ndarray) -> tuple[np.ndarray, float]:
     noise. A frame too small for blocks gets a (1, 1) grid: one level.
     """
     step = _background_block(img.shape) // _BLOCK_SAMPLES
-    samples = img[step // 2::step, step // 2::step].astype(np.float32)
+    # a side shorter than half a step (a wide flatland frame of 32 rows) is sampled from its middle
+    y0, x0 = (min(step // 2, (n - 1) // 2) for n in img.shape)
+    samples = img[y0::step, x0::step].astype(np.float32)
+    if samples.size < 2:   # too few samples for differences: neighbouring pixels give the noise
+        samples = img.astype(np.float32)
     diff = np.diff(samples, axis=1) if samples.shape[1] > 1 else np.diff(samples, axis=0)
     diff = diff.ravel()
     noise = 1.4826 * float(_median(np.abs(diff - _median(diff)))) / math.sqrt(2)

@@ -70,6 +70,15 @@ def test_background_gradient_does_not_bias_the_centroid():
     assert abs(s.x - 30.3) < 0.02 and abs(s.y - 29.8) < 0.02 and not s.flags
 
 
+@pytest.mark.parametrize("shape", [(32, 4113), (12, 2500)])
+def test_frames_thinner_than_a_background_block(shape):
+    """A wide flatland frame (128 beams at 32 px: 32 x 4113) sampled its background from
+    rows past its last (an IndexError in every worker)."""
+    cx, cy = 0.4 * shape[1], (shape[0] - 1) / 2
+    s = find_spot(blob(shape, cx, cy, 1.2) + 0.01)
+    assert abs(s.x - cx) < 0.05 and abs(s.y - cy) < 0.05
+
+
 CLEAN = blob((64, 64), 31.2, 30.7, 1.6)
 
 

@@ -22,9 +22,8 @@ from ilt.hdr.bracket import Bracket, FrameRecord, list_beams, logged_fingerprint
 from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
 from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
 from ilt.hdr.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
-from ilt.imageio import one_thread, write_exr, write_png
+from ilt.imageio import write_exr, write_png
 from ilt.manifest import MANIFEST, atomic_path, fingerprint_file, staged_directory, write_json, write_manifest
-from ilt.workers import process_pool
 
 log = logging.getLogger(__name__)
 
@@ -275,23 +274,19 @@ def merge_capture(
 
 
 def _run_beams(beams, out_dir, options, executor, workers, logged) -> list[dict]:
-    if executor is None and workers <= 1:
-        with one_thread():  # one core, as each of N workers
-            return [merge_beam(b, out_dir, options, logged.get(b.name)) for b in beams]
-    own = executor is None
-    pool = process_pool(workers) if own else executor  # ilt.workers: forkserver, one thread each
-    try:
-        futures = [pool.submit(merge_beam, b, out_dir, options, logged.get(b.name)) for b in beams]
-        try:
-            return [f.result() for f in futures]
-        except BaseException:
-            for f in futures:
-                f.cancel()
-            cf.wait(futures)  # let running beams finish before the staged directory is removed
-            raise
-    finally:
-        if own:
-            pool.shutdown(wait=True, cancel_futures=True)
+    """Every beam through :func:`ilt.frames.run_chunks` (a bounded number in flight, a
+    dead worker named by its beam) on the caller's executor or a pool of ``workers``
+    that is stopped at once on an error or a signal (:func:`ilt.frames.beam_executor`)."""
+    from ilt.frames import beam_executor, run_chunks
+
+    tasks = [([i], b, out_dir, options, logged.get(b.name)) for i, b in enumerate(beams)]
+    with beam_executor(executor, workers) as pool:
+        return list(run_chunks(_merge_one, tasks, pool))
+
+
+def _merge_one(index, beam_dir, out_dir, options, logged):
+    """Worker: :func:`merge_beam` of one beam (``index``: its place, for messages)."""
+    return merge_beam(beam_dir, out_dir, options, logged)
 
 
 def merge_files(paths: list[str | os.PathLike], output: str | os.PathLike,

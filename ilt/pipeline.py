@@ -20,6 +20,7 @@ beams) and it is merged with the beams' merge options into ``photos/<kind>.exr``
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -168,9 +169,20 @@ class Stage:
     make: object = None
 
 
-def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
-    """The stages of a run in order (photos and decompose only when there are photos)."""
+def no_progress(length: int, label: str):
+    """The default ``progress`` of a run: ``update(n)`` that shows nothing."""
+    return contextlib.nullcontext(lambda n=1: None)
+
+
+def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress) -> list[Stage]:
+    """The stages of a run in order (photos and decompose only when there are photos).
+
+    ``progress(length, label)``: a context manager yielding ``update(n)``, called with the
+    beams done as each per-beam stage goes (``ilt run`` draws a bar on a terminal, a
+    line every tenth in a log).
+    """
     from ilt.build_isf import build_isf
+    from ilt.capture.plan import planned_beams
     from ilt.decompose import decompose, default_cache_dir
     from ilt.hdr.stages import merge_capture
     from ilt.isf import load_isf
@@ -190,17 +202,25 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
     # run_pipeline removes the directory before the first stage and after the last, and
     # a failed centroids stage ends the run before build-isf
     scratch = ws.root / SCRATCH_DIR
+    beams = planned_beams(cfg.rig.plan)
+
+    def make_merge():
+        with progress(beams, "merge") as update:
+            merge_capture(d["capture"], d["merge"], merge_options(m), workers=m["workers"], force=True,
+                          parameters=fingerprinted(m), progress=update)
 
     def make_centroids():
         _remove_scratch(ws)
         scratch.mkdir(parents=True)
-        run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params), workers=c["workers"], force=True,
-                      frame_cache=scratch)
+        with progress(beams, "centroids") as update:
+            run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params), workers=c["workers"],
+                          force=True, frame_cache=scratch, progress=update)
 
     def make_build_isf():
         try:
-            build_isf(d["merge"], d["centroids"], d["build-isf"], workers=b["workers"], force=True,
-                      frame_cache=scratch if scratch.is_dir() else None, **isf_params)
+            with progress(beams, "build-isf") as update:
+                build_isf(d["merge"], d["centroids"], d["build-isf"], workers=b["workers"], force=True,
+                          frame_cache=scratch if scratch.is_dir() else None, progress=update, **isf_params)
         finally:
             _remove_scratch(ws)
 
@@ -212,9 +232,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig) -> list[Stage]:
 
     stages = [
         Stage("capture", d["capture"], capture_parameters(cfg.rig), {}),
-        Stage("merge", d["merge"], fingerprinted(m), {"capture": d["capture"]},
-              lambda: merge_capture(d["capture"], d["merge"], merge_options(m), workers=m["workers"], force=True,
-                                    parameters=fingerprinted(m))),
+        Stage("merge", d["merge"], fingerprinted(m), {"capture": d["capture"]}, make_merge),
         Stage("centroids", d["centroids"], fingerprinted(c), {"hdr": d["merge"]}, make_centroids),
         Stage("build-isf", d["build-isf"], fingerprinted(b), {"hdr": d["merge"], "spots": d["centroids"]},
               make_build_isf),
@@ -421,7 +439,7 @@ def check_capture(stage: Stage, force: bool) -> StageState:
     return state
 
 
-def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool) -> bool:
+def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool, progress=no_progress) -> bool:
     """The capture stage: resumed when interrupted; a scan that differs from the config
     is moved aside (never deleted) only with ``force``."""
     from ilt.capture.camera import check_sim_camera
@@ -442,17 +460,22 @@ def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool) -> boo
     resume = (stage.directory / LOG_NAME).exists()
     log.info("capture: %s (%s)", "resuming" if resume else "scanning", state.reason or state.state)
 
-    def on_beam(result, done, total):
-        log.debug("capture: beam %d (%d/%d) %.1f s", result.beam, done, total, result.seconds)
+    from ilt.capture.plan import planned_beams
 
-    capture(cfg.rig, stage.directory, resume=resume, on_beam=on_beam)
+    with progress(planned_beams(cfg.rig.plan), "capture") as update:
+        def on_beam(result, done, total):
+            log.debug("capture: beam %d (%d/%d) %.1f s", result.beam, done, total, result.seconds)
+            update(1)
+
+        capture(cfg.rig, stage.directory, resume=resume, on_beam=on_beam)
     write_record(stage.directory, "capture", stage.parameters, {})
     return True
 
 
-def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False) -> list[dict]:
-    """Run every stage that is not up to date, in order. Returns one summary per stage."""
-    stages = plan_stages(ws, cfg)
+def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False, progress=no_progress) -> list[dict]:
+    """Run every stage that is not up to date, in order. Returns one summary per stage.
+    ``progress``: as :func:`plan_stages` takes it."""
+    stages = plan_stages(ws, cfg, progress)
     # before the config is installed: a refused run changes nothing
     check_capture(stages[0], force)
     if not force:  # --force writes every stage again (the scan moved aside): nothing is built on
@@ -460,17 +483,17 @@ def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False) -> list[dic
     install_config(ws, cfg)
     _remove_scratch(ws)  # frames a killed run kept
     try:
-        return _run_stages(ws, cfg, stages, force)
+        return _run_stages(ws, cfg, stages, force, progress)
     finally:
         _remove_scratch(ws)
 
 
-def _run_stages(ws: Workspace, cfg: RunConfig, stages: list[Stage], force: bool) -> list[dict]:
+def _run_stages(ws: Workspace, cfg: RunConfig, stages: list[Stage], force: bool, progress=no_progress) -> list[dict]:
     summaries = []
     for stage in stages:
         t0 = time.monotonic()
         if stage.name == "capture":
-            ran = run_capture(ws, stage, cfg, force)
+            ran = run_capture(ws, stage, cfg, force, progress)
         else:
             ran, _ = run_stage(stage.directory, stage.name, stage.parameters, input_fingerprints(stage),
                                stage.make, force=force, evidence=input_evidences(stage))

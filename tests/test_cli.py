@@ -258,3 +258,19 @@ def test_decompose_solver_noise_and_regularisation(isf_dir, tmp_path):
         errors[bool(flag)] = relative_errors(np.load(out / "room" / "bounces.npy"), truth[:4]).max()
     assert ops["regularisation_width"] > 0
     assert errors[True] < errors[False]
+
+
+def test_progress_in_a_log_is_a_line_every_tenth(caplog):
+    """Under `ilt run` or in a pipe (stderr no terminal) the per-beam stages log their
+    progress a tenth at a time, with the beams done and an ETA."""
+    import logging
+
+    from ilt.cli.options import progress_bar
+
+    with caplog.at_level(logging.INFO), progress_bar(95, "merge") as update:
+        for _ in range(95):
+            update(1)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("merge:")]
+    assert [line.split(",")[0] for line in lines] == [f"merge: {n}/95 beams" for n in range(9, 91, 9)] + \
+        ["merge: 95/95 beams"]
+    assert all("ETA" in line for line in lines)

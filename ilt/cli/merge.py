@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from ilt.cli.options import emit, force_option, json_option, require_dir, workers_option, workspace_option
+from ilt.cli.options import emit, force_option, json_option, progress_bar, require_dir, workers_option, workspace_option
 
 
 @click.command("merge")
@@ -60,6 +60,9 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
         require_dir(inputs[0], "the capture", "run 'ilt capture' first, or give CAPTURE_DIR")
         params = {"gain": gain, "read_noise": read_noise, "margin": margin, "color": color,
                   "compression": compression, "response": response_path}
-        path, summary = merge_capture(inputs[0], output, options, workers=workers, force=force,
-                                      parameters=params)
+        from ilt.hdr.bracket import list_beams
+
+        with progress_bar(len(list_beams(inputs[0])), "merge") as update:
+            path, summary = merge_capture(inputs[0], output, options, workers=workers, force=force,
+                                          parameters=params, progress=update)
     emit(as_json, summary, [str(path)])

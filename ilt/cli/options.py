@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import sys
+import time
 from pathlib import Path
 
 import click
@@ -59,13 +60,26 @@ def note(text: str) -> None:
 
 @contextlib.contextmanager
 def progress_bar(length: int, label: str):
-    """Yield ``update(n)`` of a progress bar with ETA on stderr, drawn only when stderr is a
-    terminal and the log shows INFO: logs and pipes get no bar lines."""
-    if not (sys.stderr.isatty() and informing()):
+    """Yield ``update(n)`` of the progress of ``length`` beams on stderr: a bar with ETA
+    on a terminal; in a log (stderr not a terminal) a line every tenth of the way,
+    ``ilt: INFO: merge: 16/32 beams, ETA 3 s``; nothing with ``-q``."""
+    if not informing() or length <= 0:
         yield lambda n=1: None
         return
-    with click.progressbar(length=length, label=label, file=sys.stderr, show_eta=True) as bar:
-        yield bar.update
+    if sys.stderr.isatty():
+        with click.progressbar(length=length, label=label, file=sys.stderr, show_eta=True) as bar:
+            yield bar.update
+        return
+    start, done, step = time.monotonic(), 0, max(1, length // 10)
+
+    def update(n=1):
+        nonlocal done
+        before, done = done, done + n
+        if done // step > before // step or done >= length > before:
+            eta = (time.monotonic() - start) / done * max(0, length - done)
+            logging.getLogger("ilt").info("%s: %d/%d beams, ETA %.0f s", label, min(done, length), length, eta)
+
+    yield update
 
 
 def emit(as_json: bool, summary, paths: list[str]) -> None:

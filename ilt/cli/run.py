@@ -6,7 +6,7 @@ import time
 
 import click
 
-from ilt.cli.options import emit, json_option, note, workspace_option
+from ilt.cli.options import emit, json_option, note, progress_bar, workspace_option
 
 
 @click.command("run")
@@ -34,7 +34,7 @@ def command(config, workspace, force, as_json):
     from ilt.pipeline import run_pipeline, workspace_config
 
     start = time.monotonic()
-    summaries = run_pipeline(workspace, workspace_config(workspace, config), force=force)
+    summaries = run_pipeline(workspace, workspace_config(workspace, config), force=force, progress=progress_bar)
     ran = [s["stage"] for s in summaries if s["ran"]]
     note(f"ilt: run: {'ran ' + ', '.join(ran) if ran else 'every stage was up to date'} "
          f"({time.monotonic() - start:.1f} s)")

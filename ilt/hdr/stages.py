@@ -229,8 +229,10 @@ def merge_capture(
     workers: int = 1,
     force: bool = False,
     parameters: dict | None = None,
+    progress=None,
 ) -> tuple[Path, dict]:
     """Merge every beam of a capture directory into an HDR directory (docs/hdr.md).
+    ``progress(n)`` is called as beams finish.
 
     Beams run through ``executor`` (any concurrent.futures.Executor, e.g. a cluster's),
     else a process pool of ``workers`` (1: in this process). The directory is staged and
@@ -247,7 +249,7 @@ def merge_capture(
     logged = logged_fingerprints(capture_dir)
     top = Path(capture_dir) / MANIFEST
     with staged_directory(output, force=force) as tmp:
-        summaries = _run_beams(beams, tmp, options, executor, workers, logged)
+        summaries = _run_beams(beams, tmp, options, executor, workers, logged, progress)
         clipped = [s for s in summaries if s["saturated_pixels"]]
         for s in clipped:
             log.warning("%s: %d pixels saturated in every exposure: their values are lower bounds "
@@ -273,7 +275,7 @@ def merge_capture(
                           "saturated_pixels": sum(s["saturated_pixels"] for s in summaries)}
 
 
-def _run_beams(beams, out_dir, options, executor, workers, logged) -> list[dict]:
+def _run_beams(beams, out_dir, options, executor, workers, logged, progress=None) -> list[dict]:
     """Every beam through :func:`ilt.frames.run_chunks` (a bounded number in flight, a
     dead worker named by its beam) on the caller's executor or a pool of ``workers``
     that is stopped at once on an error or a signal (:func:`ilt.frames.beam_executor`)."""
@@ -281,7 +283,7 @@ def _run_beams(beams, out_dir, options, executor, workers, logged) -> list[dict]
 
     tasks = [([i], b, out_dir, options, logged.get(b.name)) for i, b in enumerate(beams)]
     with beam_executor(executor, workers) as pool:
-        return list(run_chunks(_merge_one, tasks, pool))
+        return list(run_chunks(_merge_one, tasks, pool, progress=progress))
 
 
 def _merge_one(index, beam_dir, out_dir, options, logged):

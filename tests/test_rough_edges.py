@@ -93,7 +93,6 @@ def test_rendered_scene_memory_counts_the_fine_patches():
     assert memory.render_bytes("m", 64, 16, 32.0, 4) == memory.MATRICES_AT_PEAK * 8 * 1024**2
     assert memory.render_bytes("m", 64, 32, 32.0, 4) == 4 * memory.render_bytes("m", 64, 16, 32.0, 4)
     assert memory.scene_patches("occluded", 1024) == 1536 and memory.scene_patches("box", 192) == 192
-    assert memory.available_bytes() > 0
 
 
 def test_capture_refuses_an_unknown_scene_and_a_huge_plan_before_making_capture(tmp_path):

@@ -9,7 +9,6 @@ fit would end in numpy's ``Unable to allocate`` traceback, or in swapping for ho
 
 from __future__ import annotations
 
-import os
 
 #: (N, N) float64 arrays alive at the peak of building a scene and solving its transport:
 #: tracemalloc peaks of 85-112 bytes per N^2 (11-14 matrices) for N = 1024-3072, flatland
@@ -26,26 +25,15 @@ class InsufficientMemory(ValueError):
     """A simulation that would need more memory than the machine has available."""
 
 
-def available_bytes() -> int:
-    """Memory available to a new allocation without swapping: MemAvailable of /proc/meminfo
-    (free memory plus the page cache that can be dropped), else the free physical pages."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-
-
 def gib(n_bytes: float) -> str:
     return f"{n_bytes / 2**30:.3g} GiB"
 
 
 def require(needed: int, what: str) -> None:
     """Raise :class:`InsufficientMemory` when ``needed`` bytes exceed the memory available."""
-    available = available_bytes()
+    from ilt.solvers import available_memory
+
+    available = available_memory()
     if needed > available:
         raise InsufficientMemory(f"{what} needs about {gib(needed)} of memory, {gib(available)} is available; "
                                  "use fewer beams")

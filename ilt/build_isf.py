@@ -33,16 +33,18 @@ from ilt.frames import (
     run_chunks,
 )
 from ilt.fullres import (
+    COEFFICIENTS_FILE,
     DEFAULT_DEGREE,
+    FINE_DIR,
     CellGeometry,
+    FineAccumulator,
     basis_terms,
-    finish_coefficients,
     fit_operator,
     frames_inputs,
     write_fine,
 )
 from ilt.imageio import write_exr
-from ilt.isf import CELLS_FILE, SCALES_FILE, write_isf
+from ilt.isf import CELLS_FILE, SCALES_FILE, T_FILE, write_isf
 from ilt.manifest import (
     MANIFEST,
     fingerprint_array,
@@ -234,32 +236,46 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         kept = scratch.kept() if scratch is not None else frozenset()
         tasks = [(c, [None if b in kept else hdr.files[b] for b in c], hdr.frame_shape, sampler, m,
                   scratch if kept else None, fine_degree) for c in chunks(plan, chunk)]
-        raw = np.empty((m, m))
-        coefficients = np.empty((terms, m, m)) if fine_degree else None
-        squares = np.empty((m, m)) if fine_degree else None
+        # T's columns go straight into the memory-mapped T.npy, divided by their norms as
+        # they arrive (elementwise, so the same floats as raw / scales on the whole); the
+        # fine coefficients into a float32 memory map, block by block (FineAccumulator):
+        # nothing m x m is held in memory (was about 40 m^2 bytes)
+        T = np.lib.format.open_memmap(tmp / T_FILE, mode="w+", dtype=np.float64, shape=(m, m))
+        scales = np.empty(m)
+        accumulator = None
+        if fine_degree:
+            (tmp / FINE_DIR).mkdir()
+            accumulator = FineAccumulator(
+                np.lib.format.open_memmap(tmp / FINE_DIR / COEFFICIENTS_FILE, mode="w+", dtype=np.float32,
+                                          shape=(terms, m, m)),
+                CellGeometry.from_labels(labels, m), fine_degree)
         done = 0
         with beam_executor(executor, workers) as ex:
             for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
-                raw[:, done:done + block.shape[1]] = block[:m]
-                if coefficients is not None:
-                    coefficients[:, :, done:done + block.shape[1]] = block[m:-m].reshape(terms, m, -1)
-                    squares[:, done:done + block.shape[1]] = block[-m:]
-                done += block.shape[1]
+                b = block.shape[1]
+                raw = block[:m]
+                norms = scales[done:done + b] = _column_norms(raw)
+                zero = np.flatnonzero(~(norms > 0))
+                if zero.size:
+                    j = done + int(zero[0])
+                    raise BuildError(f"beam {plan[j]} ({hdr.files[plan[j]]}): its image is zero at every sample")
+                T[:, done:done + b] = raw / norms
+                if accumulator is not None:
+                    accumulator.add(done, block[m:-m].reshape(terms, m, b), raw, block[-m:], norms)
+                done += b
         if kept:  # every kept frame is read: free its disk while the outputs are written
             _in_background(scratch.path.unlink, missing_ok=True)
-        scales = np.linalg.norm(raw, axis=0)
-        zero = np.flatnonzero(~(scales > 0))
-        if zero.size:
-            raise BuildError(f"beam {plan[zero[0]]} ({hdr.files[plan[zero[0]]]}): its image is zero at every sample")
-        T = raw / scales
+        T.flush()
         if fine_degree is not None:
-            stored, share = (None, None) if coefficients is None else finish_coefficients(
-                coefficients, raw, squares, scales, CellGeometry.from_labels(labels, m), fine_degree)
-            del coefficients, squares
-            write_fine(tmp, stored, fine_degree, T, fingerprint_array(labels), frames_inputs(hdr.path), share)
+            share = None
+            if accumulator is not None:
+                share = accumulator.finish()
+                accumulator.out.flush()
+                del accumulator
+            write_fine(tmp, None, fine_degree, T, fingerprint_array(labels), frames_inputs(hdr.path), share)
         fields = {"sampling": sampling, "beams": plan, "drops": drops,
                   "pixel_mapping": hdr.mapping.as_dict()}
-        manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan)
+        manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
         save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")
         parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
@@ -272,6 +288,14 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                       **spots_manifest.get("inputs", {})}
         write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields})
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
+
+
+def _column_norms(raw: np.ndarray) -> np.ndarray:
+    """(b,) 2-norms of the columns of an (m, b) block, the same floats as
+    ``np.linalg.norm`` of the whole (m, m) raw T along axis 0 gives: that sums each
+    column's squares in row order, one row after another, which a running sum along
+    the rows (cumsum) does for any block, where norm on a narrow block sums pairwise."""
+    return np.sqrt(np.cumsum(np.square(raw), axis=0)[-1])
 
 
 def _in_background(function, **kwargs) -> None:

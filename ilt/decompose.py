@@ -91,7 +91,9 @@ def load_operator(
     ``series`` or ``compressed`` figures of those solvers, build included).
     ``fingerprint``: T's :func:`~ilt.manifest.fingerprint_array` when the caller has it.
     """
-    key = (fingerprint or fingerprint_array(np.asarray(T))).split(":", 1)[1]
+    # "-lut": the factors' layout (those of T's transpose, :class:`ilt.transport.CancellationOperator`);
+    # entries ilt wrote before, the factors of T itself, are not read as such
+    key = (fingerprint or fingerprint_array(np.asarray(T))).split(":", 1)[1] + "-lut"
     measured = estimate_noise(T) if noise is None else noise
     notes = {
         "noise": measured,

@@ -160,39 +160,63 @@ def fit_operator(geometry: CellGeometry, degree: int) -> scipy.sparse.csr_matrix
     return scipy.sparse.csr_matrix((weights.ravel(), (rows, cols)), shape=(K * m, int(np.prod(geometry.shape))))
 
 
-def finish_coefficients(coefficients: np.ndarray, raw: np.ndarray, squares: np.ndarray, scales: np.ndarray,
-                        geometry: CellGeometry, degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """The stored coefficients from the raw ones of one build, and each cell's explained share.
+class FineAccumulator:
+    """The stored coefficients and each cell's explained share, a block of beam columns
+    at a time as the frames arrive (:func:`ilt.build_isf.build_isf`): nothing m x m in
+    float64 is kept.
 
-    coefficients : (K, m, m) float64 raw fits (frame units), modified in place;
-    raw : (m, m) raw T (cell sums); squares : (m, m) cell sums of the squared frames;
-    scales : (m,) T's column scales. A beam's own cell is zeroed (its spot is no indirect
-    light); so is every cell whose polynomial explains less than :data:`MIN_EXPLAINED`
-    of the frames' variation in it. Returns (K, m, m) float32 coefficients of unit beam
-    frames (columns scaled like T's) and (m,) float64 explained shares.
+    out : (K, m, m) float32, written column block by column block (a memory map of
+    ``fine/coefficients.npy``). Per block (:meth:`add`) the raw fits of its beams get
+    their own cell zeroed (its spot is no indirect light), add their explained and
+    total variation to each cell's sums over the beams of other cells, and are stored
+    scaled by 1 / scales_j (unit beam frames, columns scaled like T's). :meth:`finish`
+    then zeroes, in place, every cell whose polynomial explains less than
+    :data:`MIN_EXPLAINED` of the frames' variation in it and returns the (m,) shares.
+    The shares are sums over the beams, so blocks of any width give them to rounding
+    (the coefficients themselves bit for bit).
     """
-    m = raw.shape[0]
-    diagonal = np.arange(m)
-    coefficients[:, diagonal, diagonal] = 0.0
-    variation = squares - raw * raw / np.maximum(geometry.area, 1.0)[:, None]
-    variation[diagonal, diagonal] = 0.0
-    explained = np.einsum("aij,iab,bij->i", coefficients, geometry.gram(degree), coefficients)
-    total = variation.sum(axis=1)
-    share = np.where(total > 0, explained / np.where(total > 0, total, 1.0), 1.0)
-    coefficients[:, share < MIN_EXPLAINED, :] = 0.0
-    coefficients /= scales[None, None, :]
-    return coefficients.astype(np.float32), share
+
+    def __init__(self, out: np.ndarray, geometry: CellGeometry, degree: int):
+        self.out, self.degree = out, degree
+        self.gram = geometry.gram(degree)                               # (m, K, K)
+        self.area = np.maximum(geometry.area, 1.0)
+        m = geometry.m
+        self.explained, self.total = np.zeros(m), np.zeros(m)
+
+    def add(self, j0: int, coefficients: np.ndarray, raw: np.ndarray, squares: np.ndarray,
+            scales: np.ndarray) -> None:
+        """Beams ``j0 .. j0 + b - 1``: coefficients (K, m, b) float64 raw fits (modified
+        in place), raw (m, b) cell sums, squares (m, b) cell sums of the squared frames,
+        scales (b,) their columns' 2-norms."""
+        b = raw.shape[1]
+        own, k = np.arange(j0, j0 + b), np.arange(b)
+        coefficients[:, own, k] = 0.0
+        variation = squares - raw * raw / self.area[:, None]
+        variation[own, k] = 0.0
+        self.total += variation.sum(axis=1)
+        self.explained += np.einsum("aij,iab,bij->i", coefficients, self.gram, coefficients)
+        coefficients /= scales[None, None, :]
+        self.out[:, :, j0:j0 + b] = coefficients
+
+    def finish(self) -> np.ndarray:
+        total = self.total
+        share = np.where(total > 0, self.explained / np.where(total > 0, total, 1.0), 1.0)
+        flat = np.flatnonzero(share < MIN_EXPLAINED)
+        if flat.size:
+            self.out[:, flat, :] = 0.0
+        return share
 
 
 def write_fine(directory: Path, coefficients: np.ndarray | None, degree: int, T: np.ndarray,
                labels_fingerprint: str, frames: dict, share: np.ndarray | None = None) -> None:
-    """``directory/fine/``: coefficients.npy (K, m, m) float32 (none for degree 0) and a
+    """``directory/fine/``: coefficients.npy (K, m, m) float32 (none for degree 0, or None
+    when the caller wrote it there itself, :class:`FineAccumulator`) and a
     manifest with the degree and the fingerprints of what it was built from (T, the cells,
     the frames' directory), checked by :func:`load_fine`."""
     from ilt.manifest import save_npy, write_manifest
 
     fine = Path(directory) / FINE_DIR
-    fine.mkdir()
+    fine.mkdir(exist_ok=True)   # the build may have written coefficients.npy there already (a memory map)
     if coefficients is not None and coefficients.size:
         save_npy(fine / COEFFICIENTS_FILE, coefficients)
     write_manifest(fine, "fine-operator", {"degree": degree},
@@ -350,5 +374,5 @@ def frames_inputs(hdr_path: str | os.PathLike) -> dict:
     return {f"frames {path.absolute()}": fingerprint_input(path)}
 
 
-__all__ = ["FineOperator", "FineError", "CellGeometry", "fit_operator", "finish_coefficients", "write_fine",
+__all__ = ["FineOperator", "FineError", "CellGeometry", "fit_operator", "FineAccumulator", "write_fine",
            "load_fine", "full_resolution", "basis_terms", "FINE_DIR", "DEFAULT_DEGREE", "DEGREES"]

@@ -74,15 +74,17 @@ class ISF:
 
 def write_isf(
     directory: str | os.PathLike, T: np.ndarray, samples: np.ndarray, layout: tuple[int, int],
-    frame_shape: tuple[int, int], beams: list[int] | None = None,
+    frame_shape: tuple[int, int], beams: list[int] | None = None, t_written: bool = False,
 ) -> dict:
-    """Write ``T.npy`` and ``samples.csv`` into ``directory``; return the manifest fields
+    """Write ``T.npy`` (unless ``t_written``: T is the memory map of ``directory/T.npy``
+    already) and ``samples.csv`` into ``directory``; return the manifest fields
     the caller records: ``m`` (rows of T), ``plan_m`` and ``layout`` (the plan's beams and
     their rows x cols, kept when beams were dropped so vectors show in the plan's
     places), ``dropped_beams`` (the plan beams with no row in T: the gaps) and
     ``frame_shape``. ``beams``: plan beam of each row (default 0..m-1)."""
     directory = Path(directory)
-    save_npy(directory / T_FILE, np.asarray(T, dtype=np.float64))
+    if not t_written:
+        save_npy(directory / T_FILE, np.asarray(T, dtype=np.float64))
     write_samples(directory / SAMPLES_FILE, samples, beams)
     plan_m = int(layout[0]) * int(layout[1])
     kept = set(range(len(samples)) if beams is None else (int(b) for b in beams))

@@ -154,13 +154,18 @@ class BlockOperator(UnitColumnOperator):
         return out
 
 
-def independent_groups(T: np.ndarray, threshold: float = 0.0) -> list[np.ndarray]:
+def independent_groups(T: np.ndarray, threshold: float = 0.0, stop_above: int | None = None) -> list[np.ndarray]:
     """Groups of points that exchange no light: connected components of the graph with
     an edge i-j when ``|T[i, j]| > threshold`` or ``|T[j, i]| > threshold`` (T with unit
     columns). Returns index arrays, largest first.
 
     Breadth-first search a frontier at a time: O(m^2) reads and no edge list, so a
     connected T costs one pass and memory m x (frontier size) in 512-wide chunks.
+    ``stop_above``: stop as soon as a group holds more than this many points; that
+    group is then returned as found so far (a part of its component, still the largest
+    group) and the points not reached yet in no group at all (what :func:`choose_solver`
+    needs: whether T splits into groups of at most m / 2; a dense T is decided after
+    one step, not a pass over T per frontier).
     """
     T, norms = prepare_isf(T)
     m = T.shape[0]
@@ -179,6 +184,9 @@ def independent_groups(T: np.ndarray, threshold: float = 0.0) -> list[np.ndarray
             frontier = np.flatnonzero(reached & unseen)
             unseen[frontier] = False
             group.extend(frontier.tolist())
+            if stop_above is not None and len(group) > stop_above:
+                groups.append(np.sort(np.array(group)))
+                return sorted(groups, key=len, reverse=True)
         groups.append(np.sort(np.array(group)))
     return sorted(groups, key=len, reverse=True)
 
@@ -204,7 +212,7 @@ def block_operator(T: np.ndarray, threshold: float = 0.0) -> BlockOperator:
 def choose_solver(T: np.ndarray, noise: float | None) -> tuple[str, str]:
     """The back-end ``auto`` uses for T, and why (a sentence)."""
     m = T.shape[0]
-    groups = independent_groups(T, threshold=noise or 0.0)
+    groups = independent_groups(T, threshold=noise or 0.0, stop_above=m // 2)  # a larger group decides it
     largest = len(groups[0])
     if len(groups) > 1 and largest <= m // 2:
         return "blocks", (f"T splits into {len(groups)} independent groups (largest {largest} of {m} points): "

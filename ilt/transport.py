@@ -7,11 +7,13 @@ Implements Seitz, Matsushita & Kutulakos, "A Theory of Inverse Light Transport"
   ``T1[i, i] = 1 / (T^-1)[i, i]``.
 - n-th bounce operator, Sec. 2.2: ``Cn = C1 (I - C1)^(n-1)``, ``Ln = Cn L``.
 
-``C1`` is never formed. ``T`` is factorised once (``T = P L U``, LAPACK getrf) and the
+``C1`` is never formed. ``T``'s transpose is factorised once (``T^T = P L U``, LAPACK
+getrf: a C-order copy of T is T^T in Fortran order, so no transposing copy) and the
 factors are inverted in place (trtri), so one m x m array holds ``U^-1`` (upper
-triangle) and ``L^-1`` (strict lower triangle, unit diagonal implied). That gives
-``diag(T^-1)`` in O(m^2) extra work, and every later solve is two triangular
-matrix products (BLAS trmm) on a batch of columns. Cost: 4/3 m^3 flops once, against
+triangle) and ``L^-1`` (strict lower triangle, unit diagonal implied). Since
+``T^-1 = P L^-T U^-T`` and ``diag(T^-1) = diag(T^-T)``, that gives ``diag(T^-1)`` in
+O(m^2) extra work, and every later solve is two transposed triangular matrix products
+(BLAS trmm) on a batch of columns. Cost: 4/3 m^3 flops once, against
 2 m^3 for getrf + getri; memory: the factors plus one block of m x 256.
 
 The bounces are computed by the recursion ``r0 = L; Ln = C1 r(n-1); rn = r(n-1) - Ln``,
@@ -70,10 +72,11 @@ class CancellationOperator(UnitColumnOperator):
     ----------
     factors : (m, m) float64, Fortran order
         ``U^-1`` in the upper triangle (with diagonal), ``L^-1`` in the strict lower
-        triangle (unit diagonal implied), where ``P T_n = L U`` and ``T_n`` is ``T`` with
-        unit-norm columns.
+        triangle (unit diagonal implied), where ``P^T T_n^T = L U`` and ``T_n`` is ``T``
+        with unit-norm columns: ``T_n^-1 = P L^-T U^-T``.
     perm : (m,) int64
-        Row order applied before the triangular factors: ``P^T b = b[perm]``.
+        The row order of the factorisation: ``P^T b = b[perm]``, so the solve ends with
+        ``x[perm] = L^-T U^-T b``.
     t1_unit : (m,) float64
         Diagonal of ``T1`` for ``T`` with unit-norm columns (as the paper builds it).
     column_norms : (m,) float64
@@ -94,9 +97,11 @@ class CancellationOperator(UnitColumnOperator):
         returns float64 of the same shape."""
         vec = b.ndim == 1
         trmm = blas.get_blas_funcs("trmm", (self.factors,))
-        rhs = np.asfortranarray(b[self.perm].reshape(self.m, -1), dtype=self.factors.dtype)
-        y = trmm(1.0, self.factors, rhs, lower=1, diag=1, overwrite_b=1)
-        x = trmm(1.0, self.factors, y, lower=0, overwrite_b=1).astype(np.float64, copy=False)
+        rhs = np.array(b.reshape(self.m, -1), dtype=self.factors.dtype, order="F")
+        y = trmm(1.0, self.factors, rhs, lower=0, trans_a=1, overwrite_b=1)           # U^-T b
+        z = trmm(1.0, self.factors, y, lower=1, diag=1, trans_a=1, overwrite_b=1)     # L^-T U^-T b
+        x = np.empty(z.shape)
+        x[self.perm] = z
         return x[:, 0] if vec else x
 
     def apply(self, values: np.ndarray) -> np.ndarray:
@@ -207,15 +212,18 @@ def cancellation_operator(T: np.ndarray, dtype=np.float64) -> CancellationOperat
     """
     T, norms = prepare_isf(T)
     # Equilibrate columns: C1 does not depend on them (paper Sec. 3) and LU is better
-    # conditioned on unit columns. This is the only m x m copy we make.
-    work = np.array(T, dtype=dtype, order="F")
+    # conditioned on unit columns. This is the only m x m copy we make: in T's own C
+    # order (a straight copy; a Fortran-order one transposes in memory, 4 s at m = 12288),
+    # which is T_n^T in Fortran order, what getrf factorises in place.
+    work = np.array(T, dtype=dtype, order="C")
     work /= norms.astype(dtype)
+    work = work.T
     getrf, gecon, trtri, lange = lapack.get_lapack_funcs(("getrf", "gecon", "trtri", "lange"), (work,))
-    anorm = float(lange("1", work))  # max column sum, without an m x m temporary
+    anorm = float(lange("I", work))  # max row sum of T_n^T = ||T_n||_1, without an m x m temporary
     factors, piv, info = getrf(work, overwrite_a=1)
     if info > 0:
-        raise TransportError(f"T is exactly singular: zero pivot at beam {info - 1}")
-    rcond, _ = gecon(factors, anorm)
+        raise TransportError(f"T is exactly singular: zero pivot at pixel row {info - 1}")
+    rcond, _ = gecon(factors, anorm, norm="I")  # ||.||_inf of T_n^T: the 1-norm estimate of T_n
     if rcond < T.shape[0] * np.finfo(dtype).eps:
         raise TransportError(
             f"T is singular to working precision (reciprocal condition estimate {rcond:.2e}): "
@@ -246,7 +254,8 @@ def _permutation_from_pivots(piv: np.ndarray) -> np.ndarray:
 
 
 def _inverse_diagonal(factors: np.ndarray, perm: np.ndarray) -> np.ndarray:
-    """``diag(T^-1)`` from the inverted factors: ``T^-1 = U^-1 L^-1 P^T``.
+    """``diag(T^-1)`` from the inverted factors of ``A = T^T``: ``A^-1 = U^-1 L^-1 P^T``,
+    whose diagonal is ``T^-1``'s (the transpose's inverse is the inverse's transpose).
 
     ``(T^-1)[i, i] = sum_k Uinv[i, k] Linv[k, q_i]`` with ``q = argsort(perm)``, done in
     row blocks so the extra memory is ``2 m x _DIAG_BLOCK``. The sums run along

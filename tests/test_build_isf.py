@@ -105,6 +105,54 @@ def test_executor_is_pluggable_and_gives_the_same_T(runs, tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "isf" / "T.npy"), np.load(root / "cell" / "T.npy"))
 
 
+def _whole_array_reference(isf_dir, hdr_dir, degree):
+    """T and the fine coefficients the way build-isf made them before it streamed them
+    (issue 15): every column in memory, T = raw / scales on the whole, and the fine
+    coefficients finished on whole (K, m, m) float64 arrays (the code of that build)."""
+    from ilt.build_isf import _column_chunk
+    from ilt.frames import open_hdr_directory
+    from ilt.fullres import MIN_EXPLAINED, CellGeometry, basis_terms
+
+    hdr = open_hdr_directory(hdr_dir)
+    plan = json.loads((isf_dir / "manifest.json").read_text())["beams"]
+    m, K = len(plan), basis_terms(degree)
+    block = _column_chunk(plan, [hdr.files[b] for b in plan], hdr.frame_shape, str(isf_dir / "cells.exr"), m,
+                          None, degree)
+    raw, coefficients, squares = block[:m], block[m:-m].reshape(K, m, m), block[-m:]
+    scales = np.linalg.norm(raw, axis=0)
+    geometry = CellGeometry.from_labels(load_isf(isf_dir).cells, m)
+    diagonal = np.arange(m)
+    coefficients[:, diagonal, diagonal] = 0.0
+    variation = squares - raw * raw / np.maximum(geometry.area, 1.0)[:, None]
+    variation[diagonal, diagonal] = 0.0
+    explained = np.einsum("aij,iab,bij->i", coefficients, geometry.gram(degree), coefficients)
+    total = variation.sum(axis=1)
+    share = np.where(total > 0, explained / np.where(total > 0, total, 1.0), 1.0)
+    coefficients[:, share < MIN_EXPLAINED, :] = 0.0
+    coefficients /= scales[None, None, :]
+    return raw / scales, scales, coefficients.astype(np.float32), share
+
+
+@pytest.mark.parametrize("degree, chunk", [(1, 16), (2, 5)])
+def test_streamed_t_and_fine_coefficients_equal_the_whole_array_build(runs, tmp_path, degree, chunk):
+    """T and scales bit for bit, the float32 coefficients to their rounding, the flat
+    cells the same, whatever the column blocks (chunk 5: uneven blocks, the last short)."""
+    root, sim = runs[32]
+    with ThreadPoolExecutor(2) as ex:
+        build_isf(sim / "hdr", root / "spots", tmp_path / "isf", executor=ex, chunk=chunk, fine_degree=degree)
+    T, scales, coefficients, share = _whole_array_reference(tmp_path / "isf", sim / "hdr", degree)
+    np.testing.assert_array_equal(np.load(tmp_path / "isf" / "T.npy"), T)
+    np.testing.assert_array_equal(np.load(tmp_path / "isf" / "scales.npy"), scales)
+    stored = np.load(tmp_path / "isf" / "fine" / "coefficients.npy")
+    assert stored.dtype == np.float32 and stored.shape == coefficients.shape
+    np.testing.assert_allclose(stored, coefficients, rtol=2e-7, atol=0)
+    fine = json.loads((tmp_path / "isf" / "fine" / "manifest.json").read_text())
+    assert fine["flat_cells"] == int((share < 0.9).sum())
+    assert "fine/coefficients.npy" in json.loads((tmp_path / "isf" / "manifest.json").read_text())["outputs"]
+    # the ISF the other stages load: T as a plain array, the fine operator against it
+    assert load_isf(tmp_path / "isf").T.shape == T.shape
+
+
 def test_flagged_and_duplicate_beams_are_dropped_with_a_warning(runs, tmp_path, caplog):
     root, sim = runs[16]
     spots = tmp_path / "spots"

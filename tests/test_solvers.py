@@ -71,3 +71,24 @@ def test_noise_floor_from_negative_entries(sigma):
     noisy = T + np.random.default_rng(2).normal(scale=sigma, size=T.shape)
     assert estimate_noise(noisy) == pytest.approx(sigma, rel=0.1)
     assert estimate_noise(T) is None
+
+
+def test_the_group_search_stops_at_a_group_of_more_than_half_and_decides_the_same():
+    """choose_solver only asks whether every group holds at most m / 2 points: the search
+    stops at the first larger one (a dense T after one step) and decides as a full one."""
+    big, _ = independent_objects(1, beams=96)
+    small, _ = independent_objects(2, beams=32)
+    T = scipy.linalg.block_diag(big, small)                          # groups 96, 32, 32 of 160
+    order = np.random.default_rng(5).permutation(T.shape[0])
+    T = T[np.ix_(order, order)]
+    full = independent_groups(T)
+    assert sorted(len(g) for g in full) == [32, 32, 96]
+    early = independent_groups(T, stop_above=T.shape[0] // 2)
+    assert len(early[0]) > T.shape[0] // 2 and set(early[0]) <= set(full[0])
+    assert choose_solver(T, None)[0] != "blocks"
+    dense = np.random.default_rng(0).uniform(0.1, 1.0, (300, 300)) + np.eye(300)
+    assert [len(g) for g in independent_groups(dense, stop_above=150)] == [300]
+    assert choose_solver(dense, None)[0] != "blocks"
+    T3, _ = independent_objects(3)                                    # every group <= m / 2: searched in full
+    name, reason = choose_solver(T3, None)
+    assert name == "blocks" and "3 independent groups" in reason

@@ -178,3 +178,24 @@ def test_noise_in_t_is_reported_as_negative_bounces():
     # the same T without noise: no warning
     clean = decomposition_diagnostics(L, bounce_images(cancellation_operator(T), L, n_bounces=4))
     assert clean["negative_share"] == [0.0] * 4 and clean["warnings"] == []
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_factors_of_the_transpose_give_t_inverse_with_pivoting(dtype):
+    """The factors are T^T's (issue 15: no Fortran-order copy of T): solves, diag(T^-1)
+    and the 1-norm condition estimate are T's, also where partial pivoting reorders rows
+    (a T that is not diagonally dominant, columns of very different scales)."""
+    rng = np.random.default_rng(3)
+    m = 97
+    T = rng.uniform(0.0, 1.0, (m, m)) + np.diag(rng.uniform(0.0, 0.5, m))
+    T *= rng.uniform(0.1, 10.0, m)[None, :]
+    op = cancellation_operator(T, dtype=dtype)
+    Tn = T / np.linalg.norm(T, axis=0)
+    inverse = np.linalg.inv(Tn)
+    tol = 1e-9 if dtype == np.float64 else 2e-2
+    b = rng.standard_normal((m, 3))
+    np.testing.assert_allclose(op.solve(b), inverse @ b, rtol=tol, atol=tol * np.abs(inverse @ b).max())
+    np.testing.assert_allclose(op.solve(b[:, 0]), inverse @ b[:, 0], rtol=tol, atol=tol * np.abs(inverse @ b).max())
+    np.testing.assert_allclose(op.t1_unit, 1.0 / np.diag(inverse), rtol=tol)
+    exact = 1.0 / (np.abs(Tn).sum(axis=0).max() * np.abs(inverse).sum(axis=0).max())
+    assert exact / 3 <= op.rcond <= exact * 3

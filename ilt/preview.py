@@ -419,11 +419,16 @@ def _aspect(shape: tuple[int, int]) -> float:
 
 
 def _max_pool(a: np.ndarray, limit: int) -> np.ndarray:
-    """(H, W) -> at most (limit, limit) by the max over integer blocks."""
+    """(H, W) -> at most (limit, limit) by the max over integer blocks, a band of rows
+    at a time (T of m = 24000 is 4.6 GB: no padded copy of it, only of one band)."""
     fy, fx = (-(-n // limit) for n in a.shape)
     if fy == fx == 1:
         return a
-    height, width = -(-a.shape[0] // fy) * fy, -(-a.shape[1] // fx) * fx
-    padded = np.full((height, width), a.min())
-    padded[: a.shape[0], : a.shape[1]] = a
-    return padded.reshape(height // fy, fy, width // fx, fx).max(axis=3).max(axis=1)  # one axis at a time: faster
+    rows, cols = -(-a.shape[0] // fy), -(-a.shape[1] // fx)
+    out = np.empty((rows, cols))
+    for r in range(rows):
+        band = np.asarray(a[r * fy:(r + 1) * fy], dtype=np.float64).max(axis=0)
+        padded = np.full(cols * fx, band.min())
+        padded[: band.size] = band
+        out[r] = padded.reshape(cols, fx).max(axis=1)
+    return out

@@ -188,23 +188,17 @@ def print_merge_8bit(result: dict) -> None:
               + f" | {r['scale']:.4g} | {r['calibrate_s']:.3f} | {r['merge_s']:.3f} |")
 
 
-def throughput(tmp: Path, beams: int, width: int, height: int, repeat: int, rng, distinct: int | None = None):
-    """Decode only against merge, wall and user CPU time (medians of ``repeat``). The
-    capture log holds each frame's sha256 as ``ilt capture`` writes it, so the merge takes
-    its fingerprints from there; the run without the log hashes every DNG.
-
-    ``distinct``: brackets simulated (default: every beam); the other beams are hard
-    links to them (a full-size bracket takes seconds to simulate and 180 MB of disk).
-    The page cache then holds the distinct files, so decoding and merging both read
-    from memory: the ratio is of compute, as on a capture disk fast enough to stream."""
+def make_capture(cap: Path, beams: int, width: int, height: int, distinct: int, rng) -> None:
+    """A capture directory of ``beams`` beams of the paper's bracket of simulated DNGs,
+    ``distinct`` of them simulated and the others hard links to them, with the
+    fingerprints in capture.jsonl as ``ilt capture`` logs them."""
     import os
 
     from ilt.capture.loop import LOG_NAME, CaptureLog
     from ilt.manifest import fingerprint_file
 
     sensor = SensorModel(width=width, height=height)
-    cap = tmp / "cap"
-    distinct = min(distinct or beams, beams)
+    distinct = min(distinct, beams)
     for b in range(beams):
         beam = cap / f"beam-{b:05d}"
         if b < distinct:
@@ -214,12 +208,27 @@ def throughput(tmp: Path, beams: int, width: int, height: int, repeat: int, rng,
             beam.mkdir()
             for f in (cap / f"beam-{b % distinct:05d}").iterdir():
                 os.link(f, beam / f.name)
-    files = sorted(cap.rglob("*.dng"))
     journal = CaptureLog(cap / LOG_NAME)
-    for f in files:
+    for f in sorted(cap.rglob("*.dng")):
         journal.append("frame", beam=int(f.parent.name.split("-")[1]), file=f"{f.parent.name}/{f.name}",
                        sha256=fingerprint_file(f))
     journal.close()
+
+
+def throughput(tmp: Path, beams: int, width: int, height: int, repeat: int, rng, distinct: int | None = None):
+    """Decode only against merge, wall and user CPU time (medians of ``repeat``). The
+    capture log holds each frame's sha256 as ``ilt capture`` writes it, so the merge takes
+    its fingerprints from there; the run without the log hashes every DNG.
+
+    ``distinct``: brackets simulated (default: every beam); the other beams are hard
+    links to them (a full-size bracket takes seconds to simulate and 180 MB of disk).
+    The page cache then holds the distinct files, so decoding and merging both read
+    from memory: the ratio is of compute, as on a capture disk fast enough to stream."""
+    from ilt.capture.loop import LOG_NAME
+
+    cap = tmp / "cap"
+    make_capture(cap, beams, width, height, distinct or beams, rng)
+    files = sorted(cap.rglob("*.dng"))
 
     def decode():
         for f in files:

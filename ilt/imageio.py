@@ -155,6 +155,9 @@ def write_exr(
     spec.attribute(_CHANNELS_ATTR, json.dumps(names))
     for name, value in header.items():
         spec.attribute(name, value)
+    # OpenImageIO stamps the second of writing otherwise ("" leaves it out): the same
+    # pixels and attributes give the same bytes, whoever writes them and when
+    spec.attribute("DateTime", "")
 
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))

@@ -90,6 +90,17 @@ def remove_stale_temporaries(directory: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def _remove_lost_temporaries(directory: Path) -> None:
+    """Temporary files inside a finished staged directory: a writer lost mid-write left
+    them (a cluster's worker killed while its beam was run again elsewhere); nothing
+    writes there any more, and no manifest lists a hidden file."""
+    for root, _, files in os.walk(directory):
+        for name in files:
+            if (m := TEMPORARY.match(name)) and m["kind"] == "tmp":
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(os.path.join(root, name))
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (same suffix) that replaces it on success.
@@ -306,6 +317,7 @@ def staged_directory(final: str | os.PathLike, force: bool = False) -> Iterator[
     tmp = _make_temporary_directory(final.parent, final.name, "tmp")
     try:
         yield tmp
+        _remove_lost_temporaries(tmp)
         if final.exists():
             # checked again: the directory may have changed (or appeared) while the stage ran
             if reason := _refusal(final):

@@ -12,6 +12,7 @@ keys are the long options of the stage commands (docs/workspace.md)::
     [photos]     sim = ["flashlight"] # simulated rig: photos under these illuminations
                  files = ["a.exr"]    # and/or EXR photos (paths relative to the config)
     [decompose]  bounces = 8          # ilt decompose --bounces
+    [cluster]    scheduler = "tcp://head:8786"  # ilt run --scheduler (docs/cluster.md)
 
 Photos on the simulated rig are *captured*: the simulated camera shoots each photo's
 bracket of DNG files under the illumination (same bracket, sensor and noise as the
@@ -52,8 +53,9 @@ from ilt.workspace import STAGE_DIRS, Workspace
 
 log = logging.getLogger(__name__)
 
-#: options of a stage command that change nothing in its output (not fingerprinted)
-RUNTIME_KEYS = ("workers",)
+#: options of a stage command that change nothing in its output (not fingerprinted);
+#: the [cluster] scheduler is one too, kept out of the stage sections altogether
+RUNTIME_KEYS = ("workers", "scheduler")
 
 
 @dataclass
@@ -69,6 +71,8 @@ class RunConfig:
     decompose: dict = field(default_factory=dict)
     photo_kinds: tuple[str, ...] = ()
     photo_files: tuple[Path, ...] = ()
+    #: [cluster] scheduler: where the per-beam stages run (ilt.cluster); None: here
+    scheduler: str | None = None
 
 
 def stage_options(command: click.Command, section: dict, allowed: tuple[str, ...], where: str) -> dict:
@@ -134,7 +138,21 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
                                 f"{path}: [decompose]"),
         photo_kinds=kinds,
         photo_files=tuple(path.parent / f for f in photos.get("files", ())),
+        scheduler=_cluster_scheduler(raw.get("cluster", {}), f"{path}: [cluster]"),
     )
+
+
+def _cluster_scheduler(section, where: str) -> str | None:
+    """The [cluster] table: ``scheduler = "local" | "tcp://host:port"`` (a runtime
+    option: no stage's parameters depend on it)."""
+    if not isinstance(section, dict):
+        raise ConfigError(f"{where}: must be a table")
+    if unknown := set(section) - {"scheduler"}:
+        raise ConfigError(f"{where}: unknown key {min(unknown)!r} (known: scheduler)")
+    scheduler = section.get("scheduler")
+    if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
+        raise ConfigError(f"{where}: scheduler must be \"local\" or an address such as \"tcp://host:8786\"")
+    return scheduler.strip() if scheduler else None
 
 
 def fingerprinted(options: dict) -> dict:
@@ -174,12 +192,14 @@ def no_progress(length: int, label: str):
     return contextlib.nullcontext(lambda n=1: None)
 
 
-def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress) -> list[Stage]:
+def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=None) -> list[Stage]:
     """The stages of a run in order (photos and decompose only when there are photos).
 
     ``progress(length, label)``: a context manager yielding ``update(n)``, called with the
     beams done as each per-beam stage goes (``ilt run`` draws a bar on a terminal, a
-    line every tenth in a log).
+    line every tenth in a log). ``executor``: where merge, centroids and build-isf
+    run their beams (a cluster's, :func:`ilt.cluster.executor_for`), else each
+    stage's process pool of its ``workers``.
     """
     from ilt.build_isf import build_isf
     from ilt.capture.plan import planned_beams
@@ -206,21 +226,22 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress) -> list[Sta
 
     def make_merge():
         with progress(beams, "merge") as update:
-            merge_capture(d["capture"], d["merge"], merge_options(m), workers=m["workers"], force=True,
-                          parameters=fingerprinted(m), progress=update)
+            merge_capture(d["capture"], d["merge"], merge_options(m), executor=executor, workers=m["workers"],
+                          force=True, parameters=fingerprinted(m), progress=update)
 
     def make_centroids():
         _remove_scratch(ws)
         scratch.mkdir(parents=True)
         with progress(beams, "centroids") as update:
-            run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params), workers=c["workers"],
-                          force=True, frame_cache=scratch, progress=update)
+            run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params), executor=executor,
+                          workers=c["workers"], force=True, frame_cache=scratch, progress=update)
 
     def make_build_isf():
         try:
             with progress(beams, "build-isf") as update:
-                build_isf(d["merge"], d["centroids"], d["build-isf"], workers=b["workers"], force=True,
-                          frame_cache=scratch if scratch.is_dir() else None, progress=update, **isf_params)
+                build_isf(d["merge"], d["centroids"], d["build-isf"], executor=executor, workers=b["workers"],
+                          force=True, frame_cache=scratch if scratch.is_dir() else None, progress=update,
+                          **isf_params)
         finally:
             _remove_scratch(ws)
 
@@ -472,10 +493,11 @@ def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool, progre
     return True
 
 
-def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False, progress=no_progress) -> list[dict]:
+def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False, progress=no_progress,
+                 executor=None) -> list[dict]:
     """Run every stage that is not up to date, in order. Returns one summary per stage.
-    ``progress``: as :func:`plan_stages` takes it."""
-    stages = plan_stages(ws, cfg, progress)
+    ``progress``, ``executor``: as :func:`plan_stages` takes them."""
+    stages = plan_stages(ws, cfg, progress, executor)
     # before the config is installed: a refused run changes nothing
     check_capture(stages[0], force)
     if not force:  # --force writes every stage again (the scan moved aside): nothing is built on

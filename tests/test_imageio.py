@@ -179,3 +179,16 @@ def test_half_files_from_other_tools_are_read_as_float32(tmp_path):
     pixels, attributes = read_exr(path)
     assert pixels.dtype == np.float32 and np.all(pixels == 0.5)
     assert attributes["channels"] == ["Y"]
+
+
+def test_the_same_image_gives_the_same_bytes(tmp_path):
+    """No write-time stamp (OpenImageIO's DateTime) in the header: two runs, two machines
+    or two executors writing the same pixels write the same file."""
+    import time
+
+    image = np.arange(12, dtype=np.float32).reshape(3, 4)
+    write_exr(tmp_path / "a.exr", image, attributes={"beam": 3})
+    time.sleep(1.05)
+    write_exr(tmp_path / "b.exr", image, attributes={"beam": 3})
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+    assert "DateTime" not in read_exr(tmp_path / "a.exr")[1]

@@ -11,6 +11,7 @@ from ilt.cli.options import (
     json_option,
     progress_bar,
     require_dir,
+    scheduler_option,
     stage_output_option,
     workers_option,
     workspace_option,
@@ -36,11 +37,12 @@ from ilt.cli.options import (
 @click.option("--no-fine", is_flag=True, help="Do not build fine/: 'ilt decompose' then splits photos at the "
                                                "m samples only.")
 @workers_option
+@scheduler_option
 @workspace_option
 @force_option
 @json_option
 def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, max_cell_radius, fine_degree,
-            no_fine, workers, workspace, force, as_json):
+            no_fine, workers, scheduler, workspace, force, as_json):
     """Build the ISF directory (-o, default WORKSPACE/isf) from the beam frames in HDR_DIR
     and the spots in SPOTS_DIR (from 'ilt centroids').
 
@@ -53,15 +55,17 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
     stage), with the same result bit for bit.
     """
     from ilt.build_isf import build_isf
+    from ilt.cluster import executor_for
 
     hdr_dir, spots_dir = workspace.resolve(hdr_dir, "merge"), workspace.resolve(spots_dir, "centroids")
     output = workspace.resolve(output, "build-isf")
     require_dir(hdr_dir, "the HDR frames", "run 'ilt merge' first, or give HDR_DIR")
     require_dir(spots_dir, "the spots", "run 'ilt centroids' first, or give SPOTS_DIR")
 
-    with progress_bar(_count(hdr_dir), "build-isf") as update:
+    with executor_for(scheduler, workers) as executor, progress_bar(_count(hdr_dir), "build-isf") as update:
         summary = build_isf(hdr_dir, spots_dir, output, sampling=sampling, min_separation=min_separation,
-                            lit_fraction=lit_fraction, max_cell_radius=max_cell_radius, workers=workers,
+                            lit_fraction=lit_fraction, max_cell_radius=max_cell_radius, executor=executor,
+                            workers=workers,
                             fine_degree=None if no_fine else fine_degree,
                             progress=update, force=force)
     emit(as_json, summary, [summary["output"]])

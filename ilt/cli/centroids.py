@@ -10,6 +10,7 @@ from ilt.cli.options import (
     json_option,
     progress_bar,
     require_dir,
+    scheduler_option,
     stage_output_option,
     workers_option,
     workspace_option,
@@ -38,11 +39,12 @@ from ilt.cli.options import (
 @click.option("--roi", default=None, help="Region of interest x0,y0,x1,y1 in full-frame sensor pixels.")
 @click.option("--refine", is_flag=True, help="Refine each centroid with a 2D Gaussian fit.")
 @workers_option
+@scheduler_option
 @workspace_option
 @force_option
 @json_option
 def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongation, large_factor, max_area,
-            saturation, roi, refine, workers, workspace, force, as_json):
+            saturation, roi, refine, workers, scheduler, workspace, force, as_json):
     """Find the laser spot of every beam frame in HDR_DIR (one EXR per beam, sorted by
     name, optional manifest.json with the plan's layout), or of every beam of a capture
     directory at its shortest exposure, less its dark frame (the paper's choice).
@@ -53,6 +55,7 @@ def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongatio
     (default WORKSPACE/spots). Flagged
     beams are listed on stderr; build-isf drops them.
     """
+    from ilt.cluster import executor_for
     from ilt.spots import SpotParameters, run_centroids
 
     hdr_dir, output = workspace.resolve(hdr_dir, "merge"), workspace.resolve(output, "centroids")
@@ -68,9 +71,9 @@ def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongatio
                             max_elongation=max_elongation, large_factor=large_factor, max_area=max_area,
                             saturation=saturation, roi=roi, refine=refine)
 
-    with progress_bar(_count(hdr_dir), "centroids") as update:
-        summary = run_centroids(hdr_dir, output, params, dark=dark, workers=workers, progress=update,
-                                force=force)
+    with executor_for(scheduler, workers) as executor, progress_bar(_count(hdr_dir), "centroids") as update:
+        summary = run_centroids(hdr_dir, output, params, dark=dark, executor=executor, workers=workers,
+                                progress=update, force=force)
     emit(as_json, summary, [summary["output"]])
 
 

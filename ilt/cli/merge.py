@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import click
 
-from ilt.cli.options import emit, force_option, json_option, progress_bar, require_dir, workers_option, workspace_option
+from ilt.cli.options import (
+    emit,
+    force_option,
+    json_option,
+    progress_bar,
+    require_dir,
+    scheduler_option,
+    workers_option,
+    workspace_option,
+)
 
 
 @click.command("merge")
@@ -27,11 +36,12 @@ from ilt.cli.options import emit, force_option, json_option, progress_bar, requi
               show_default=True, help="Lossless EXR compression; zip:1 is deflate at its fastest level "
               "(noisy float data compresses little more at higher levels).")
 @workers_option
+@scheduler_option
 @workspace_option
 @force_option
 @json_option
 def command(inputs, output, bracket, times, dark, response_path, gain, read_noise, margin, color,
-            compression, workers, workspace, force, as_json):
+            compression, workers, scheduler, workspace, force, as_json):
     """Merge each beam's RAW bracket of CAPTURE_DIR (default WORKSPACE/capture) into
     beam-NNNNN.exr of the HDR directory -o (default WORKSPACE/hdr).
 
@@ -60,9 +70,11 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
         require_dir(inputs[0], "the capture", "run 'ilt capture' first, or give CAPTURE_DIR")
         params = {"gain": gain, "read_noise": read_noise, "margin": margin, "color": color,
                   "compression": compression, "response": response_path}
+        from ilt.cluster import executor_for
         from ilt.hdr.bracket import list_beams
 
-        with progress_bar(len(list_beams(inputs[0])), "merge") as update:
-            path, summary = merge_capture(inputs[0], output, options, workers=workers, force=force,
-                                          parameters=params, progress=update)
+        beams = len(list_beams(inputs[0]))
+        with executor_for(scheduler, workers) as executor, progress_bar(beams, "merge") as update:
+            path, summary = merge_capture(inputs[0], output, options, executor=executor, workers=workers,
+                                          force=force, parameters=params, progress=update)
     emit(as_json, summary, [str(path)])

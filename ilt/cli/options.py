@@ -33,6 +33,15 @@ workers_option = click.option(
     show_default="all cores",
     help="Worker processes, one core each (1: in this process). No output depends on it.",
 )
+#: ``--scheduler`` of the per-beam stages (ilt.cluster); a runtime option like --workers
+scheduler_option = click.option(
+    "--scheduler", "scheduler", default=None, metavar="ADDRESS",
+    help="Run the per-beam work on a Dask cluster (pip install 'ilt[cluster]'; docs/cluster.md): "
+         "'local' starts a LocalCluster of --workers single-threaded processes on this machine; "
+         "tcp://HOST:8786 uses the workers of a running 'dask scheduler' (every worker must see the "
+         "workspace at the same path). Default: $DASK_SCHEDULER_ADDRESS when set, else a process pool "
+         "of --workers here. No output depends on it; an unreachable scheduler is an error (10 s).",
+)
 
 
 class MissingInput(ValueError):

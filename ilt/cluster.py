@@ -1,0 +1,206 @@
+"""The per-beam stages on a Dask cluster (``--scheduler``; docs/cluster.md).
+
+One seam: :func:`executor_for` turns a scheduler address into the
+``concurrent.futures.Executor`` that merge, centroids and build-isf take as their
+``executor=`` argument, or None, the default, under which they run on a process pool
+of this machine (:mod:`ilt.workers`) and nothing of Dask is imported.
+
+Workers receive paths and beam ranges, never frames; what a task returns (a beam's
+summary, a chunk's spots or columns of T) comes back to this process, which writes
+every stage file but the merged EXRs, written by the merge workers into the staged
+output directory: the workspace (capture/, hdr/, the frame scratch of ``ilt run``)
+must be on storage every worker sees at the same path. The scheduler is a runtime
+option like ``--workers``: no stage fingerprint or parameter depends on it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+log = logging.getLogger(__name__)
+
+#: the environment variable Dask itself reads for the scheduler's address
+ENV = "DASK_SCHEDULER_ADDRESS"
+#: ``--scheduler local``: a LocalCluster on this machine
+LOCAL = "local"
+#: seconds to wait for the scheduler before giving up
+CONNECT_TIMEOUT = 10.0
+
+
+class ClusterError(ConnectionError):
+    """The scheduler cannot be reached, or Dask is not installed: one line naming the
+    address (an OSError, so that the CLI reports it in one line, exit 1)."""
+
+
+class ClusterLost(cf.BrokenExecutor):
+    """A task the cluster gave up on (its workers kept dying: Dask's KilledWorker after
+    ``distributed.scheduler.allowed-failures`` retries), or the scheduler went away:
+    :func:`ilt.frames.run_chunks` turns it into a WorkerError naming the beams."""
+
+
+def scheduler_address(scheduler: str | None) -> str | None:
+    """``scheduler`` when given, else ``$DASK_SCHEDULER_ADDRESS`` when set, else None."""
+    scheduler = (scheduler or "").strip() or os.environ.get(ENV, "").strip()
+    return scheduler or None
+
+
+class ClusterExecutor(cf.Executor):
+    """A dask.distributed ``ClientExecutor`` (``pure=False``: every submission a task of
+    its own) whose futures fail with :class:`ClusterLost`, a ``BrokenExecutor``, when
+    the cluster loses a task for good, with :meth:`lost` saying which and how, as
+    :class:`ilt.workers.BeamPool` does for a dead process. A worker that dies is
+    otherwise Dask's business: its tasks run again on the others."""
+
+    def __init__(self, client, directory: str | None = None):
+        self.client = client
+        self.directory = directory or os.getcwd()
+        self._inner = client.get_executor(pure=False)
+        self._lost: list[tuple[cf.Future, str]] = []
+
+    def submit(self, fn, /, *args, **kwargs) -> cf.Future:
+        inner = self._inner.submit(in_directory, self.directory, fn, *args, **kwargs)
+        outer: cf.Future = cf.Future()
+
+        def done(f: cf.Future) -> None:
+            if outer.done():
+                return
+            try:
+                if f.cancelled():   # not by us (then outer is done): the scheduler went away
+                    how = "was cancelled by the cluster (the scheduler went away, or the client lost it)"
+                    self._lost.append((outer, how))
+                    outer.set_exception(ClusterLost(how))
+                elif (exc := f.exception()) is None:
+                    outer.set_result(f.result())
+                elif _is_lost(exc):
+                    how = f"was lost by the cluster ({type(exc).__name__}: {exc})"
+                    self._lost.append((outer, how))
+                    outer.set_exception(ClusterLost(how))
+                else:
+                    outer.set_exception(exc)
+            except cf.InvalidStateError:  # cancelled meanwhile
+                pass
+
+        outer.add_done_callback(lambda o: o.cancelled() and inner.cancel())
+        inner.add_done_callback(done)
+        return outer
+
+    def lost(self) -> list[tuple[cf.Future, str]]:
+        return list(self._lost)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._inner.shutdown(wait=wait and not cancel_futures)
+
+
+def in_directory(directory: str, fn, /, *args, **kwargs):
+    """On a worker: ``fn(*args, **kwargs)`` in the submitting process's current
+    directory, so that the relative paths a stage passes mean what they mean there
+    (the storage shared at the same path on every machine). FileNotFoundError naming
+    it when this worker does not see it."""
+    if os.getcwd() != directory:
+        try:
+            os.chdir(directory)
+        except OSError:
+            import socket
+
+            raise FileNotFoundError(f"{directory}: not found on the Dask worker at {socket.gethostname()}: every "
+                                    "worker must see the workspace at the same path (docs/cluster.md)") from None
+    return fn(*args, **kwargs)
+
+
+def _is_lost(exc: BaseException) -> bool:
+    from distributed.comm.core import CommClosedError
+    from distributed.scheduler import KilledWorker
+
+    return isinstance(exc, (KilledWorker, CommClosedError))
+
+
+def _one_thread_plugin():
+    """A worker plugin: one OpenImageIO and OpenCV thread per Dask worker (as in each
+    process of ilt's own pools), so that N single-threaded workers use N cores."""
+    from distributed import WorkerPlugin
+
+    class OneThread(WorkerPlugin):
+        name = "ilt-one-thread"
+
+        def setup(self, worker):
+            from ilt.imageio import one_thread_per_process
+
+            one_thread_per_process()
+
+    return OneThread()
+
+
+@contextmanager
+def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[cf.Executor | None]:
+    """The executor of the per-beam stages for ``scheduler``.
+
+    None (and ``$DASK_SCHEDULER_ADDRESS`` unset): yields None, the stages' own process
+    pool, without importing Dask. ``"local"``: a ``distributed.LocalCluster`` on this
+    machine, ``workers`` (default: every core) single-threaded worker processes, closed
+    at the end. An address (``tcp://host:8786``): a Client of that scheduler's workers,
+    closed at the end (the cluster keeps running). :class:`ClusterError` when the
+    scheduler does not answer within :data:`CONNECT_TIMEOUT` seconds; nothing has been
+    written then. The dashboard's address is logged at INFO.
+    """
+    address = scheduler_address(scheduler)
+    if address is None:
+        yield None
+        return
+    try:
+        import distributed
+    except ImportError:
+        raise ClusterError(f"{address}: the scheduler needs dask.distributed: pip install 'ilt[cluster]'") from None
+    _quiet_dask()
+    cluster = None
+    if address == LOCAL:
+        n = workers or os.cpu_count() or 1
+        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                           dashboard_address=":0", silence_logs=logging.CRITICAL)
+        client = distributed.Client(cluster)
+        where = f"a LocalCluster of {n} worker processes"
+    else:
+        if "://" not in address:
+            address = f"tcp://{address}"
+        try:
+            client = distributed.Client(address, timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError) as exc:
+            raise ClusterError(f"{address}: no Dask scheduler answered within {CONNECT_TIMEOUT:g} s "
+                               f"({type(exc).__name__}); start one with 'dask scheduler', or check "
+                               f"--scheduler / [cluster] scheduler / ${ENV}") from None
+        where = f"the Dask scheduler at {address}"
+    try:
+        client.register_plugin(_one_thread_plugin())
+        dashboard = _dashboard(client)
+        n = len(client.scheduler_info().get("workers", {}))
+        log.info("per-beam stages on %s (%d workers)%s", where, n, f"; dashboard {dashboard}" if dashboard else "")
+        if n == 0:
+            log.warning("%s has no workers yet: the stages wait for some ('dask worker %s')", address, address)
+        executor = ClusterExecutor(client)
+        yield executor
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _quiet_dask() -> None:
+    """Dask's own INFO lines (workers joining, connections closing) only with ``ilt -v``:
+    ilt logs what matters (where the stages run, the dashboard). Worker failures come
+    back as the task's exception, which ilt reports in one line."""
+    if not logging.getLogger().isEnabledFor(logging.DEBUG):
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+
+
+def _dashboard(client) -> str | None:
+    """The dashboard's address, None when the scheduler serves none (no bokeh)."""
+    try:
+        info = client.scheduler_info()
+        if "dashboard" not in info.get("services", {}):
+            return None
+        return client.dashboard_link
+    except Exception:  # (an optional nicety: never a reason to stop)
+        return None

@@ -1,0 +1,242 @@
+"""The per-beam stages on a Dask cluster (ilt.cluster, --scheduler): the same files, hash
+for hash, as the process pool; an unreachable scheduler and a dying worker."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from capture_helpers import run_rig_toml
+from click.testing import CliRunner
+
+distributed = pytest.importorskip("distributed",
+                                  reason="dask.distributed is not installed (pip install 'ilt[cluster]')")
+
+from ilt.cli import cli  # noqa: E402
+from ilt.manifest import fingerprint_file  # noqa: E402
+
+#: 16 beams of 8 x 8 pixels, a 5-frame bracket, no photos (the per-beam stages only)
+RIG = run_rig_toml(16, 8, "radiance_scale = 1.0e8", '[photos]\nsim = []\n')
+
+
+def run(*args, ok=True):
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    if ok:
+        assert result.exit_code == 0, result.output + repr(result.exception)
+    return result
+
+
+def hashes(directory: Path) -> dict[str, str]:
+    """relative path -> sha256 of every file but the manifest (which records the run's paths)."""
+    return {str(p.relative_to(directory)): fingerprint_file(p) for p in sorted(directory.rglob("*"))
+            if p.is_file() and p.name != "manifest.json"}
+
+
+def outputs(directory: Path) -> dict[str, str]:
+    """A manifest's output fingerprints."""
+    return json.loads((directory / "manifest.json").read_text())["outputs"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """A captured scan (16 beams), merged, centroided and built on the process pool."""
+    root = tmp_path_factory.mktemp("cluster")
+    (root / "rig.toml").write_text(RIG)
+    run("capture", root / "rig.toml", "-o", root / "capture")
+    run("merge", root / "capture", "-o", root / "hdr", "-j", 2)
+    run("centroids", root / "hdr", "-o", root / "spots", "-j", 2)
+    run("build-isf", root / "hdr", root / "spots", "-o", root / "isf", "-j", 2)
+    return root
+
+
+@pytest.fixture(scope="module")
+def local_cluster():
+    """A LocalCluster of 2 single-threaded worker processes; yields its scheduler's address."""
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  silence_logs=50) as cluster:
+        yield cluster.scheduler_address
+
+
+def test_merge_centroids_build_isf_on_a_local_cluster_equal_the_pool(data, local_cluster, tmp_path):
+    """merge (through `--scheduler local`, a LocalCluster of -j 2 workers), centroids and
+    build-isf (through a running LocalCluster's tcp:// address) write every file, hdr
+    EXRs, spots.csv, T.npy, scales.npy and the rest, byte for byte as the pool did."""
+    run("merge", data / "capture", "-o", tmp_path / "hdr", "--scheduler", "local", "-j", 2)
+    assert hashes(tmp_path / "hdr") == hashes(data / "hdr")
+    assert len([p for p in (tmp_path / "hdr").glob("beam-*.exr")]) == 16
+    assert outputs(tmp_path / "hdr") == outputs(data / "hdr")
+    run("centroids", tmp_path / "hdr", "-o", tmp_path / "spots", "--scheduler", local_cluster)
+    assert hashes(tmp_path / "spots") == hashes(data / "spots")
+    run("build-isf", tmp_path / "hdr", tmp_path / "spots", "-o", tmp_path / "isf", "--scheduler", local_cluster)
+    assert hashes(tmp_path / "isf") == hashes(data / "isf")
+    for name in ("T.npy", "scales.npy"):
+        assert fingerprint_file(tmp_path / "isf" / name) == fingerprint_file(data / "isf" / name)
+    # the same parameters recorded: the scheduler is a runtime option
+    for stage in ("hdr", "spots", "isf"):
+        a = json.loads((tmp_path / stage / "manifest.json").read_text())["parameters"]
+        b = json.loads((data / stage / "manifest.json").read_text())["parameters"]
+        assert a == b
+
+
+def test_scheduler_from_the_environment(data, local_cluster, tmp_path, monkeypatch):
+    """$DASK_SCHEDULER_ADDRESS is the default scheduler."""
+    monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", local_cluster)
+    from ilt.cluster import ClusterExecutor, executor_for
+
+    with executor_for(None) as ex:
+        assert isinstance(ex, ClusterExecutor)
+        assert ex.submit(os.getpid).result() != os.getpid()
+    run("centroids", data / "hdr", "-o", tmp_path / "spots")
+    assert hashes(tmp_path / "spots") == hashes(data / "spots")
+    monkeypatch.delenv("DASK_SCHEDULER_ADDRESS")
+    with executor_for(None) as ex:
+        assert ex is None
+
+
+def test_unreachable_scheduler_is_one_line_and_writes_nothing(data, tmp_path, monkeypatch):
+    import ilt.cluster
+
+    monkeypatch.setattr(ilt.cluster, "CONNECT_TIMEOUT", 1.0)
+    address = f"tcp://127.0.0.1:{free_port()}"   # closed: nothing listens there
+    result = run("merge", data / "capture", "-o", tmp_path / "hdr", "--scheduler", address, ok=False)
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and address in lines[0] and "1 s" in lines[0], result.output
+    assert not (tmp_path / "hdr").exists()
+    # ilt run: the config's [cluster] table, refused before the workspace is made
+    (tmp_path / "rig.toml").write_text(RIG + f'\n[cluster]\nscheduler = "{address}"\n')
+    result = run("run", tmp_path / "rig.toml", "-w", tmp_path / "ws", ok=False)
+    assert result.exit_code == 1 and address in result.output and len(result.output.strip().splitlines()) == 1
+    assert not (tmp_path / "ws").exists()
+
+
+def test_cluster_table_is_checked(tmp_path):
+    from ilt.capture.config import ConfigError
+    from ilt.pipeline import load_run_config
+
+    (tmp_path / "a.toml").write_text(RIG + '\n[cluster]\nscheduler = "tcp://head:8786"\n')
+    assert load_run_config(tmp_path / "a.toml").scheduler == "tcp://head:8786"
+    (tmp_path / "b.toml").write_text(RIG + '\n[cluster]\nworkers = 3\n')
+    with pytest.raises(ConfigError, match=r"\[cluster\]: unknown key 'workers'"):
+        load_run_config(tmp_path / "b.toml")
+
+
+# ------------------------------------------------------------ a scheduler and workers by hand
+
+
+def _dask(*args) -> list[str]:
+    return [sys.executable, "-m", "distributed.cli.dask_" + args[0], *args[1:]]
+
+
+@pytest.fixture(scope="module")
+def dask_cluster(tmp_path_factory):
+    """`dask scheduler` and two `dask worker --nworkers 1 --nthreads 1` processes on
+    127.0.0.1 (no nanny: killing one kills that worker), stopped at the end."""
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    log = open(tmp_path_factory.mktemp("dask") / "dask.log", "w")
+    procs: dict[str, subprocess.Popen] = {}
+    try:
+        procs["scheduler"] = subprocess.Popen(_dask("scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                                    "--no-dashboard"), stdout=log, stderr=log)
+        for name in ("w0", "w1"):
+            procs[name] = subprocess.Popen(_dask("worker", address, "--nworkers", "1", "--nthreads", "1",
+                                                 "--no-nanny", "--no-dashboard", "--name", name),
+                                           stdout=log, stderr=log)
+        with distributed.Client(address, timeout=30) as client:
+            client.wait_for_workers(2, timeout=30)
+        yield address, procs
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+        for p in procs.values():
+            try:
+                p.wait(3)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        log.close()
+
+
+def test_ilt_run_on_a_dask_scheduler_equals_the_pool(dask_cluster, tmp_path, monkeypatch):
+    """`ilt run --scheduler tcp://...` (a relative workspace: the workers run in the
+    submitting process's directory) writes hdr/, spots/ and isf/ with the outputs, hash
+    for hash, of `ilt run` on the pool; either workspace is up to date for the other."""
+    address, _ = dask_cluster
+    (tmp_path / "rig.toml").write_text(RIG)
+    monkeypatch.chdir(tmp_path)
+    run("run", "rig.toml", "-w", "pool")
+    run("run", "rig.toml", "-w", "dask", "--scheduler", address)
+    for stage in ("hdr", "spots", "isf"):
+        assert outputs(tmp_path / "dask" / stage) == outputs(tmp_path / "pool" / stage), stage
+    assert not (tmp_path / "dask" / ".frames-scratch").exists()
+    result = run("run", tmp_path / "rig.toml", "-w", tmp_path / "dask", "--json")
+    assert not any(s["ran"] for s in json.loads(result.stdout))
+
+
+def test_a_worker_killed_mid_merge_changes_nothing(data, dask_cluster, tmp_path):
+    """SIGKILL to a worker running beams after the first beams finished: Dask runs its
+    beams again on the other, and the HDR directory is the pool's, file for file."""
+    from ilt.cluster import executor_for
+    from ilt.hdr.stages import merge_capture
+    from ilt.pipeline import merge_options
+
+    address, procs = dask_cluster
+    killed: list[str] = []
+    done = [0]
+    options = merge_options({"gain": 1.0, "read_noise": 2.0, "margin": 0.03, "color": False,
+                             "compression": "zip:1"})
+    with executor_for(address) as ex:
+        def progress(n):
+            done[0] += n
+            if killed:
+                return
+            busy = {w: keys for w, keys in ex.client.processing().items() if keys}
+            names = {a: info["name"] for a, info in ex.client.scheduler_info()["workers"].items()}
+            for worker in busy:
+                if names.get(worker) in ("w0", "w1"):
+                    killed.append(names[worker])
+                    procs[names[worker]].send_signal(signal.SIGKILL)
+                    return
+
+        params = json.loads((data / "hdr" / "manifest.json").read_text())["parameters"]
+        merge_capture(data / "capture", tmp_path / "hdr", options, executor=ex, parameters=params,
+                      progress=progress)
+    assert killed and done[0] == 16
+    assert procs[killed[0]].wait(10) == -signal.SIGKILL
+    assert hashes(tmp_path / "hdr") == hashes(data / "hdr")
+    assert outputs(tmp_path / "hdr") == outputs(data / "hdr")
+
+
+def test_a_beam_that_kills_every_worker_is_one_error_naming_it():
+    """A task Dask gives up on (KilledWorker; here after one death) is the pool's
+    WorkerError, one line naming the chunk's beams, not Dask's exception."""
+    import dask
+
+    from ilt.cluster import executor_for
+    from ilt.frames import WorkerError, run_chunks
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}), executor_for("local", 1) as ex:
+        assert list(run_chunks(lambda beams: len(beams), [([0, 1],)], ex)) == [2]
+        with pytest.raises(WorkerError, match=r"beams 4-5: the worker process running them was lost by the cluster"):
+            list(run_chunks(lambda beams: os._exit(1) if 4 in beams else len(beams), [([2, 3],), ([4, 5],)], ex))
+
+
+def test_no_scheduler_is_the_process_pool_without_importing_dask():
+    code = ("import sys\nfrom ilt.cluster import executor_for\nwith executor_for(None) as ex:\n    assert ex is None\n"
+            "assert 'distributed' not in sys.modules and 'dask' not in sys.modules, 'dask imported'\n")
+    env = {k: v for k, v in os.environ.items() if k != "DASK_SCHEDULER_ADDRESS"}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=60)

@@ -36,10 +36,24 @@ class ClusterError(ConnectionError):
     address (an OSError, so that the CLI reports it in one line, exit 1)."""
 
 
+class WorkerOSError(OSError):
+    """An OSError a task raised on a Dask worker (most often a path that worker does not
+    see: a machine without the shared storage), re-raised there with the worker's
+    address and name added, one line: ``PATH: ... (on the Dask worker tcp://...)``."""
+
+
+class SchedulerLost(ClusterError):
+    """The connection to the scheduler was lost mid-stage (the scheduler stopped, or its
+    machine or the network went away): Dask cancels every task of the client, and the
+    stage fails with this one line naming the scheduler's address (an OSError: exit 1;
+    the staged output directory is removed, as on any error)."""
+
+
 class ClusterLost(cf.BrokenExecutor):
     """A task the cluster gave up on (its workers kept dying: Dask's KilledWorker after
-    ``distributed.scheduler.allowed-failures`` retries), or the scheduler went away:
-    :func:`ilt.frames.run_chunks` turns it into a WorkerError naming the beams."""
+    ``distributed.scheduler.allowed-failures`` retries): :func:`ilt.frames.run_chunks`
+    turns it into a WorkerError naming the beams. (A lost scheduler is
+    :class:`SchedulerLost`.)"""
 
 
 def scheduler_address(scheduler: str | None) -> str | None:
@@ -55,11 +69,15 @@ class ClusterExecutor(cf.Executor):
     :class:`ilt.workers.BeamPool` does for a dead process. A worker that dies is
     otherwise Dask's business: its tasks run again on the others."""
 
-    def __init__(self, client, directory: str | None = None):
+    def __init__(self, client, directory: str | None = None, address: str | None = None):
         self.client = client
+        #: the scheduler's address, named when it goes away
+        self.address = address or getattr(getattr(client, "scheduler", None), "address", None) or "?"
         self.directory = directory or os.getcwd()
         self._inner = client.get_executor(pure=False)
         self._lost: list[tuple[cf.Future, str]] = []
+        #: whether the connection to the scheduler was lost (every task cancelled)
+        self.scheduler_lost = False
 
     def submit(self, fn, /, *args, **kwargs) -> cf.Future:
         inner = self._inner.submit(in_directory, self.directory, fn, *args, **kwargs)
@@ -70,9 +88,11 @@ class ClusterExecutor(cf.Executor):
                 return
             try:
                 if f.cancelled():   # not by us (then outer is done): the scheduler went away
-                    how = "was cancelled by the cluster (the scheduler went away, or the client lost it)"
-                    self._lost.append((outer, how))
-                    outer.set_exception(ClusterLost(how))
+                    self.scheduler_lost = True
+                    outer.set_exception(SchedulerLost(
+                        f"{self.address}: the connection to the Dask scheduler was lost mid-stage (it stopped, or "
+                        "its machine or the network went away); the stage's unfinished beams were cancelled and "
+                        "nothing was written: start the scheduler again and re-run"))
                 elif (exc := f.exception()) is None:
                     outer.set_result(f.result())
                 elif _is_lost(exc):
@@ -98,17 +118,71 @@ class ClusterExecutor(cf.Executor):
 def in_directory(directory: str, fn, /, *args, **kwargs):
     """On a worker: ``fn(*args, **kwargs)`` in the submitting process's current
     directory, so that the relative paths a stage passes mean what they mean there
-    (the storage shared at the same path on every machine). FileNotFoundError naming
-    it when this worker does not see it."""
+    (the storage shared at the same path on every machine). A :class:`WorkerOSError`
+    naming the directory and this worker when the worker does not see it; any OSError
+    of the task (an input this worker cannot open) comes back as a WorkerOSError, its
+    message and this worker's address."""
     if os.getcwd() != directory:
         try:
             os.chdir(directory)
         except OSError:
-            import socket
+            raise WorkerOSError(f"{directory}: not found on the Dask worker {_this_worker()}: every worker must "
+                                "see the workspace at the same path (docs/cluster.md)") from None
+    try:
+        return fn(*args, **kwargs)
+    except WorkerOSError:
+        raise
+    except OSError as exc:
+        raise WorkerOSError(f"{_one_line(exc)} ({_on_this_worker()})") from None
+    except Exception as exc:
+        # ilt's own one-line error for a file it could not open (CaptureError, raised
+        # from the FileNotFoundError): the same class, the worker added to its message
+        if _from_os_error(exc) and len(exc.args) == 1 and isinstance(exc.args[0], str):
+            exc.args = (f"{exc.args[0]} ({_on_this_worker()})",)
+        raise
 
-            raise FileNotFoundError(f"{directory}: not found on the Dask worker at {socket.gethostname()}: every "
-                                    "worker must see the workspace at the same path (docs/cluster.md)") from None
-    return fn(*args, **kwargs)
+
+def _on_this_worker() -> str:
+    return (f"on the Dask worker {_this_worker()}: every worker must see the workspace at the same path, "
+            "docs/cluster.md")
+
+
+def _from_os_error(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised while handling an OSError (``raise ... from None`` too)."""
+    seen = set()
+    cause = exc.__cause__ or exc.__context__
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, OSError):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
+def _this_worker() -> str:
+    """On a worker: its address, with its name when that says more and the host
+    (``tcp://10.0.0.5:40123 (node1-3, node1)``)."""
+    import socket
+
+    host = socket.gethostname()
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+        address, name = str(worker.address), str(worker.name)
+    except Exception:  # (not in a worker task: the host is all there is to say)
+        return f"on {host}"
+    extra = [x for x in (name if name != address and not name.isdigit() else "", host) if x]
+    return f"{address} ({', '.join(extra)})"
+
+
+def _one_line(exc: OSError) -> str:
+    """``exc``'s message on one line, naming its file when the message does not."""
+    text = " ".join(str(exc).split())
+    filename = getattr(exc, "filename", None)
+    if filename is not None and str(filename) not in text:
+        text = f"{filename}: {text}"
+    return text
 
 
 def _is_lost(exc: BaseException) -> bool:
@@ -155,7 +229,7 @@ def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[
     except ImportError:
         raise ClusterError(f"{address}: the scheduler needs dask.distributed: pip install 'ilt[cluster]'") from None
     _quiet_dask()
-    cluster = None
+    cluster = executor = None
     if address == LOCAL:
         n = workers or os.cpu_count() or 1
         cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
@@ -179,10 +253,19 @@ def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[
         log.info("per-beam stages on %s (%d workers)%s", where, n, f"; dashboard {dashboard}" if dashboard else "")
         if n == 0:
             log.warning("%s has no workers yet: the stages wait for some ('dask worker %s')", address, address)
-        executor = ClusterExecutor(client)
+        executor = ClusterExecutor(client, address=client.scheduler.address if cluster is not None else address)
         yield executor
     finally:
-        client.close()
+        quiet = executor is not None and executor.scheduler_lost and not logging.getLogger().isEnabledFor(logging.DEBUG)
+        if quiet:
+            # closing a client that is trying to reconnect logs Dask's traceback of the
+            # cancelled attempt (at ERROR): SchedulerLost has said it in one line
+            logging.disable(logging.CRITICAL)
+        try:
+            client.close()
+        finally:
+            if quiet:
+                logging.disable(logging.NOTSET)
         if cluster is not None:
             cluster.close()
 

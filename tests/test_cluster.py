@@ -9,6 +9,8 @@ import signal
 import socket
 import subprocess
 import sys
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -140,23 +142,26 @@ def _dask(*args) -> list[str]:
     return [sys.executable, "-m", "distributed.cli.dask_" + args[0], *args[1:]]
 
 
-@pytest.fixture(scope="module")
-def dask_cluster(tmp_path_factory):
-    """`dask scheduler` and two `dask worker --nworkers 1 --nthreads 1` processes on
-    127.0.0.1 (no nanny: killing one kills that worker), stopped at the end."""
+@contextmanager
+def dask_processes(log_dir: Path, workers: dict[str, list[str]], preload: Path | None = None):
+    """`dask scheduler` and one `dask worker --nworkers 1 --nthreads 1` process per name
+    of ``workers`` (whose value prefixes its command line: e.g. ``unshare -m ...``) on
+    127.0.0.1 (no nanny: killing one kills that worker); yields the scheduler's address
+    and the processes by name ("scheduler" and the workers'), stopped at the end."""
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
-    log = open(tmp_path_factory.mktemp("dask") / "dask.log", "w")
+    log = open(log_dir / "dask.log", "w")
     procs: dict[str, subprocess.Popen] = {}
+    extra = ["--preload", str(preload)] if preload else []
     try:
         procs["scheduler"] = subprocess.Popen(_dask("scheduler", "--host", "127.0.0.1", "--port", str(port),
                                                     "--no-dashboard"), stdout=log, stderr=log)
-        for name in ("w0", "w1"):
-            procs[name] = subprocess.Popen(_dask("worker", address, "--nworkers", "1", "--nthreads", "1",
-                                                 "--no-nanny", "--no-dashboard", "--name", name),
+        for name, prefix in workers.items():
+            procs[name] = subprocess.Popen([*prefix, *_dask("worker", address, "--nworkers", "1", "--nthreads", "1",
+                                                            "--no-nanny", "--no-dashboard", "--name", name, *extra)],
                                            stdout=log, stderr=log)
         with distributed.Client(address, timeout=30) as client:
-            client.wait_for_workers(2, timeout=30)
+            client.wait_for_workers(len(workers), timeout=30)
         yield address, procs
     finally:
         for p in procs.values():
@@ -169,6 +174,13 @@ def dask_cluster(tmp_path_factory):
                 p.kill()
                 p.wait()
         log.close()
+
+
+@pytest.fixture(scope="module")
+def dask_cluster(tmp_path_factory):
+    """`dask scheduler` and two workers, w0 and w1 (:func:`dask_processes`)."""
+    with dask_processes(tmp_path_factory.mktemp("dask"), {"w0": [], "w1": []}) as running:
+        yield running
 
 
 def test_ilt_run_on_a_dask_scheduler_equals_the_pool(dask_cluster, tmp_path, monkeypatch):
@@ -240,3 +252,114 @@ def test_no_scheduler_is_the_process_pool_without_importing_dask():
             "assert 'distributed' not in sys.modules and 'dask' not in sys.modules, 'dask imported'\n")
     env = {k: v for k, v in os.environ.items() if k != "DASK_SCHEDULER_ADDRESS"}
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=60)
+
+
+# ------------------------------------------------------------ workers without the files; a lost scheduler
+
+
+def test_an_input_a_worker_cannot_open_names_the_path_and_the_worker(local_cluster, tmp_path):
+    """An OSError of a task (here: a path that does not exist where the worker runs)
+    comes back through run_chunks as an OSError (ilt.cluster.WorkerOSError), one line
+    naming the path and the worker's address, not as a WorkerError or a traceback."""
+    from ilt.cluster import WorkerOSError, executor_for
+    from ilt.frames import run_chunks
+
+    missing = tmp_path / "nowhere" / "beam-00003.exr"
+    with executor_for(local_cluster) as ex:
+        workers = set(ex.client.scheduler_info()["workers"])
+        with pytest.raises(WorkerOSError) as info:
+            list(run_chunks(lambda beams, path: open(path).read(), [([3], missing)], ex))
+        assert ex.lost() == []
+    message = str(info.value)
+    assert isinstance(info.value, OSError) and "\n" not in message
+    assert str(missing) in message and "No such file" in message
+    assert any(f"on the Dask worker {w}" in message for w in workers), message
+
+
+def _unshare_works() -> bool:
+    try:
+        return subprocess.run(["unshare", "-m", "sh", "-c", "mount -t tmpfs none /mnt"],
+                              capture_output=True, timeout=10).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
+@pytest.mark.skipif(sys.platform != "linux" or not _unshare_works(),
+                    reason="needs unshare -m and mount (root): a worker with its own view of the files")
+def test_a_worker_without_the_shared_storage_fails_merge_in_one_line(data, tmp_path):
+    """`ilt merge CAPTURE -o HDR --scheduler ...` whose one worker runs in a mount
+    namespace where CAPTURE is an empty tmpfs (a machine that does not see the shared
+    storage; the ilt process sees it): exit 1, one line naming a frame under CAPTURE and
+    the worker (address and name), no HDR directory, no hidden temporary beside it."""
+    import shutil
+
+    capture = tmp_path / "work" / "capture"
+    shutil.copytree(data / "capture", capture)
+    (tmp_path / "dask").mkdir()
+    hide = ["unshare", "-m", "sh", "-c", f'mount -t tmpfs none "{capture}" && exec "$@"', "sh"]
+    with dask_processes(tmp_path / "dask", {"blind": hide}) as (address, _):
+        result = run("-q", "merge", capture, "-o", tmp_path / "work" / "hdr", "--scheduler", address, ok=False)
+    assert result.exit_code == 1, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1, result.output
+    assert str(capture) in lines[0] and "on the Dask worker tcp://127.0.0.1:" in lines[0] and "blind" in lines[0]
+    assert "Traceback" not in result.output
+    assert sorted(p.name for p in (tmp_path / "work").iterdir()) == ["capture"]
+
+
+#: a worker preload: every merged beam takes 0.3 s more, so that the scheduler can be
+#: stopped while beams remain
+SLOW_MERGE = """
+import time
+
+
+def dask_setup(worker):
+    import ilt.hdr.stages as stages
+
+    merge_one = stages._merge_one
+
+    def slow(*args, **kwargs):
+        time.sleep(0.3)
+        return merge_one(*args, **kwargs)
+
+    stages._merge_one = slow
+"""
+# (patched in dask_setup, once the worker runs: a module-level `import ilt.hdr.stages`
+# in the preload itself hangs the worker's first task)
+
+
+def test_the_scheduler_stopped_mid_merge_is_one_line_and_leaves_nothing(data, tmp_path):
+    """`ilt merge ... --scheduler tcp://...` (a subprocess; one worker, 0.3 s a beam)
+    whose scheduler is killed once the first beams are in the staged directory: exit 1
+    within 60 s, one line on stderr naming the scheduler's address, no HDR directory
+    and no hidden temporary left."""
+    (tmp_path / "slow_merge.py").write_text(SLOW_MERGE)
+    (tmp_path / "dask").mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    with dask_processes(tmp_path / "dask", {"w": []}, preload=tmp_path / "slow_merge.py") as (address, procs):
+        ilt = subprocess.Popen([sys.executable, "-m", "ilt", "-q", "merge", str(data / "capture"), "-o",
+                                str(out / "hdr"), "--scheduler", address],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and ilt.poll() is None:
+                if len(list(out.glob("*/beam-*.exr"))) >= 2:
+                    break
+                time.sleep(0.02)
+            assert ilt.poll() is None, "merge finished before the scheduler could be stopped"
+            assert list(out.glob("*/beam-*.exr")), "no beam merged within 30 s"
+            procs["scheduler"].send_signal(signal.SIGKILL)
+            stopped = time.monotonic()
+            stdout, stderr = ilt.communicate(timeout=60)
+            took = time.monotonic() - stopped
+        finally:
+            if ilt.poll() is None:
+                ilt.kill()
+                ilt.wait()
+    assert ilt.returncode == 1, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and address in lines[0], stderr
+    assert took < 60
+    assert stdout == ""
+    assert list(out.iterdir()) == [], list(out.iterdir())

@@ -44,6 +44,7 @@ from ilt.transport import (
     cancellation_operator,
     decomposition_diagnostics,
     operator_diagnostics,
+    scan_isf,
 )
 
 log = logging.getLogger(__name__)
@@ -94,7 +95,13 @@ def load_operator(
     # "-lut": the factors' layout (those of T's transpose, :class:`ilt.transport.CancellationOperator`);
     # entries ilt wrote before, the factors of T itself, are not read as such
     key = (fingerprint or fingerprint_array(np.asarray(T))).split(":", 1)[1] + "-lut"
-    measured = estimate_noise(T) if noise is None else noise
+    # one pass (scan_isf) checks T and measures its column norms and negative entries
+    # (the noise); the solver choice and the build reuse it. Not made for a cached
+    # operator with the noise given: that reads T only for its fingerprint
+    scan = None
+    if noise is None:
+        T, scan = scan_isf(T)
+    measured = estimate_noise(T, scan) if noise is None else noise
     notes = {
         "noise": measured,
         "noise_source": "given" if noise is not None else
@@ -108,14 +115,17 @@ def load_operator(
             raise TransportError(f"regularising needs the plan's full grid layout; this ISF has {layout} "
                                  f"for m = {T.shape[0]} (beams were dropped?)")
         T, reg = regularise_isf(T, layout, measured)
+        T, scan = scan_isf(T)
         notes.update(regularisation=reg.describe(), regularisation_width=reg.width)
         key += f"-reg{reg.width:g}-{measured:.3e}"
-    name, reason = choose_solver(T, measured) if solver == "auto" else (solver, f"asked for {solver}")
+    if scan is None and solver != "dense":
+        T, scan = scan_isf(T)
+    name, reason = choose_solver(T, measured, scan) if solver == "auto" else (solver, f"asked for {solver}")
     notes.update(fingerprint="sha256:" + key.split("-")[0])
     if name != "dense":
         log.info("building the %s operator (m = %d): %s", name, T.shape[0], reason)
         points = grid_points(layout, T.shape[0], beams) if points is None else points
-        op, why = build_operator(T, name, measured, reason, points=points)
+        op, why = build_operator(T, name, measured, reason, points=points, scan=scan)
         figures = {op.solver: op.figures} if op.solver in ("series", "compressed") else {}
         return op, {**operator_diagnostics(T, op), **notes, "solver": op.solver, "solver_reason": why,
                     "rcond": op.rcond, "cached": False, **figures}
@@ -129,7 +139,7 @@ def load_operator(
         except (OSError, ValueError, KeyError) as exc:
             log.warning("ignoring the operator cache %s (%s); rebuilding it", entry, exc)
     log.info("factorising T (m = %d)", T.shape[0])
-    op = cancellation_operator(T)
+    op = cancellation_operator(T, scan=scan)
     diagnostics = {**operator_diagnostics(T, op), "rcond": op.rcond}
     if entry is not None:
         try:

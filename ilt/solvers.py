@@ -28,6 +28,7 @@ import os
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import blas
 
 from ilt.compressed import DEFAULT_TOL, compressed_operator
 from ilt.series import (
@@ -40,12 +41,14 @@ from ilt.series import (
 )
 from ilt.transport import (
     CancellationOperator,
+    IsfScan,
     TransportError,
     UnitColumnOperator,
     cancellation_operator,
     check_photo,
     prepare_isf,
     scale_rows,
+    scan_isf,
 )
 
 log = logging.getLogger(__name__)
@@ -112,13 +115,18 @@ class MixedOperator:
 
         Each step costs one float64 product with T (the residual) and one float32
         solve. Raises TransportError when the residual fails to halve (T too
-        ill-conditioned for float32 factors)."""
+        ill-conditioned for float32 factors).
+
+        Both run on scipy's BLAS (:func:`_product`): numpy's ``@`` would run the
+        product on numpy's own OpenBLAS, whose threads then spin against those of
+        scipy's between the alternating calls (8 bounces at m = 243 were 28x slower
+        than with one BLAS thread; docs/numerics.md, "mixed")."""
         inv_norms = 1.0 / self.low.column_norms
         bound = np.sqrt(self.m) * np.finfo(np.float64).eps * self.row_sum_norm
         x = self.low.solve(b)
         previous = np.inf
         for _ in range(self.max_iterations):
-            r = b - self.T @ scale_rows(inv_norms, x)
+            r = b - _product(self.T, scale_rows(inv_norms, x))
             size = float(np.abs(r).max())
             if size <= bound * float(np.abs(x).max()):
                 return x
@@ -131,6 +139,18 @@ class MixedOperator:
     def apply(self, values: np.ndarray) -> np.ndarray:
         check_photo(self.m, values)
         return scale_rows(self.t1_unit, self.solve(np.asarray(values, dtype=np.float64)))
+
+
+def _product(T: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``T @ x`` (float64; x (m,) or (m, k)) with scipy's BLAS, the library of
+    :meth:`CancellationOperator.solve`'s trmm: a C-order T is its transpose in Fortran
+    order, so gemv / gemm with ``trans`` read it in place (no copy of T)."""
+    a = T.T
+    if not (a.flags.f_contiguous and a.dtype == np.float64):
+        return T @ x
+    if x.ndim == 1:
+        return blas.dgemv(1.0, a, x, trans=1)
+    return blas.dgemm(1.0, a, np.asfortranarray(x), trans_a=1)
 
 
 @dataclass(frozen=True)
@@ -154,7 +174,8 @@ class BlockOperator(UnitColumnOperator):
         return out
 
 
-def independent_groups(T: np.ndarray, threshold: float = 0.0, stop_above: int | None = None) -> list[np.ndarray]:
+def independent_groups(T: np.ndarray, threshold: float = 0.0, stop_above: int | None = None,
+                       scan: IsfScan | None = None) -> list[np.ndarray]:
     """Groups of points that exchange no light: connected components of the graph with
     an edge i-j when ``|T[i, j]| > threshold`` or ``|T[j, i]| > threshold`` (T with unit
     columns). Returns index arrays, largest first.
@@ -165,9 +186,10 @@ def independent_groups(T: np.ndarray, threshold: float = 0.0, stop_above: int | 
     group is then returned as found so far (a part of its component, still the largest
     group) and the points not reached yet in no group at all (what :func:`choose_solver`
     needs: whether T splits into groups of at most m / 2; a dense T is decided after
-    one step, not a pass over T per frontier).
+    one step, not a pass over T per frontier). ``scan``: T's
+    :func:`~ilt.transport.scan_isf` when the caller has it.
     """
-    T, norms = prepare_isf(T)
+    T, norms = prepare_isf(T, scan)
     m = T.shape[0]
     unseen = np.ones(m, dtype=bool)
     groups = []
@@ -191,11 +213,11 @@ def independent_groups(T: np.ndarray, threshold: float = 0.0, stop_above: int | 
     return sorted(groups, key=len, reverse=True)
 
 
-def block_operator(T: np.ndarray, threshold: float = 0.0) -> BlockOperator:
+def block_operator(T: np.ndarray, threshold: float = 0.0, scan: IsfScan | None = None) -> BlockOperator:
     """``C1`` factorised per independent group (entries ``<= threshold`` of the unit-
     column T between groups are treated as zero)."""
-    T, norms = prepare_isf(T)
-    groups = independent_groups(T, threshold)
+    T, norms = prepare_isf(T, scan)
+    groups = independent_groups(T, threshold, scan=scan)
     t1_unit = np.empty(T.shape[0])
     operators = []
     for idx in groups:
@@ -209,10 +231,11 @@ def block_operator(T: np.ndarray, threshold: float = 0.0) -> BlockOperator:
     )
 
 
-def choose_solver(T: np.ndarray, noise: float | None) -> tuple[str, str]:
-    """The back-end ``auto`` uses for T, and why (a sentence)."""
+def choose_solver(T: np.ndarray, noise: float | None, scan: IsfScan | None = None) -> tuple[str, str]:
+    """The back-end ``auto`` uses for T, and why (a sentence). ``scan``: T's
+    :func:`~ilt.transport.scan_isf` when the caller has it."""
     m = T.shape[0]
-    groups = independent_groups(T, threshold=noise or 0.0, stop_above=m // 2)  # a larger group decides it
+    groups = independent_groups(T, threshold=noise or 0.0, stop_above=m // 2, scan=scan)  # a larger group decides it
     largest = len(groups[0])
     if len(groups) > 1 and largest <= m // 2:
         return "blocks", (f"T splits into {len(groups)} independent groups (largest {largest} of {m} points): "
@@ -265,41 +288,44 @@ def _series_wins(T: np.ndarray, threshold: float) -> str | None:
 
 
 def build_operator(T: np.ndarray, solver: str = "auto", noise: float | None = None, reason: str | None = None,
-                   points: np.ndarray | None = None):
+                   points: np.ndarray | None = None, scan: IsfScan | None = None):
     """``C1`` with the chosen back-end. Returns ``(operator, reason)``.
 
     ``noise``: the floor (relative to T's unit columns) below which ``blocks`` and
     ``series`` treat entries as zero, and the tolerance per entry of ``compressed``.
     ``reason``: why ``solver`` was chosen, when the caller ran :func:`choose_solver`
     itself (default: "asked for <solver>"). ``points``: (m, d) sample positions that
-    ``compressed`` orders its tree by (None: index order).
+    ``compressed`` orders its tree by (None: index order). ``scan``: T's
+    :func:`~ilt.transport.scan_isf` when the caller has it (dense, mixed and blocks
+    then do not check and measure T again).
     """
     if solver not in SOLVERS:
         raise TransportError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
     reason = reason or f"asked for {solver}"
     if solver == "auto":
-        solver, reason = choose_solver(T, noise)
+        solver, reason = choose_solver(T, noise, scan)
     if solver == "blocks":
-        return block_operator(T, threshold=noise or 0.0), reason
+        return block_operator(T, threshold=noise or 0.0, scan=scan), reason
     if solver == "series":
         return series_operator(T, threshold=noise or 0.0), reason
     if solver == "compressed":
         op = compressed_operator(T, tol=noise or None, points=points)
         return op, f"{reason}; {op.describe()}"
     if solver == "mixed":
-        T, norms = prepare_isf(T)
+        T, norms = prepare_isf(T, scan)
         row_sums = np.zeros(T.shape[0])
         for j0 in range(0, T.shape[1], 512):  # column blocks: no m x m temporary
             row_sums += np.abs(T[:, j0:j0 + 512]) @ (1.0 / norms[j0:j0 + 512])
         try:
-            op = MixedOperator(low=cancellation_operator(T, dtype=np.float32), T=np.asarray(T, dtype=np.float64),
+            op = MixedOperator(low=cancellation_operator(T, dtype=np.float32, scan=scan),
+                               T=np.asarray(T, dtype=np.float64),
                                row_sum_norm=float(row_sums.max()))
             op.solve(np.ones(T.shape[0]))
             return op, reason
         except TransportError as exc:
             log.warning("mixed precision fails on T (%s); using dense", exc)
             reason += f"; float32 failed ({exc}), fell back to dense"
-    return cancellation_operator(T), reason
+    return cancellation_operator(T, scan=scan), reason
 
 
 def available_memory() -> int:
@@ -314,19 +340,19 @@ def available_memory() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-def estimate_noise(T: np.ndarray) -> float | None:
+def estimate_noise(T: np.ndarray, scan: IsfScan | None = None) -> float | None:
     """Noise floor of a measured T (unit columns), from its negative entries.
 
     True ISF entries are >= 0; where the true value is ~0 (points that exchange no
     light), noise makes half the samples negative, and those are half-normal with the
     noise's sigma: ``sigma = sqrt(mean(T[T < 0]^2))``. Returns None when fewer than
     16 entries are negative (the floor is not measurable from T; give it instead).
+
+    The sums come from :func:`ilt.transport.scan_isf` (per column, so the unit
+    scaling is applied after the pass): ``scan`` when the caller has it, else one pass.
     """
-    T, norms = prepare_isf(T)
-    total, count = 0.0, 0
-    for j0 in range(0, T.shape[1], 512):
-        block = T[:, j0:j0 + 512] / norms[j0:j0 + 512]
-        neg = block[block < 0]
-        total += float(np.sum(neg * neg))
-        count += neg.size
-    return float(np.sqrt(total / count)) if count >= 16 else None
+    if scan is None or not scan.matches(T):
+        _, scan = scan_isf(T)
+    if scan.negatives < 16:
+        return None
+    return float(np.sqrt(np.sum(scan.negative_squares / scan.norms**2) / scan.negatives))

@@ -129,6 +129,8 @@ def check_photo(m: int, values: np.ndarray) -> None:
 
 
 def _check_isf(T: np.ndarray) -> np.ndarray:
+    """T as an array, refused (TransportError) unless square, non-empty and real; its
+    entries are checked for finiteness by :func:`scan_isf`, in its one pass."""
     T = np.asarray(T)
     if T.ndim != 2 or T.shape[0] != T.shape[1]:
         raise TransportError(f"T must be a square m x m matrix, got shape {T.shape}")
@@ -136,18 +138,79 @@ def _check_isf(T: np.ndarray) -> np.ndarray:
         raise TransportError("T is empty")
     if not np.issubdtype(T.dtype, np.floating) and not np.issubdtype(T.dtype, np.integer):
         raise TransportError(f"T has dtype {T.dtype}; expected a real floating-point matrix")
-    for i0 in range(0, T.shape[0], 256):  # a block of rows at a time: no m x m temporary
-        finite = np.isfinite(T[i0:i0 + 256])
-        if not finite.all():
-            i, j = np.argwhere(~finite)[0]
-            raise TransportError(f"T holds a non-finite value {T[i0 + i, j]} at pixel row {i0 + i}, beam column {j}")
     return T
 
 
-def _duplicate_columns(T: np.ndarray) -> tuple[int, int] | None:
-    """First pair of identical columns of ``T``, found by a random projection then confirmed."""
-    rng = np.random.default_rng(0)
-    keys = rng.standard_normal(T.shape[0]) @ T
+#: bytes of T read per block of rows by :func:`scan_isf` (a block stays in cache
+#: while every check and sum runs over it)
+_SCAN_BYTES = 1 << 21
+
+
+@dataclass(frozen=True)
+class IsfScan:
+    """What one pass over an ISF matrix gives (:func:`scan_isf`): its column 2-norms
+    and, for :func:`ilt.solvers.estimate_noise`, the sums over its negative entries.
+
+    norms : (m,) float64; negative_squares : (m,) float64, per column the sum of the
+    squared negative entries (of T as given); negatives : how many entries are < 0.
+    """
+
+    norms: np.ndarray = field(repr=False)
+    negative_squares: np.ndarray = field(repr=False)
+    negatives: int
+
+    def matches(self, T: np.ndarray) -> bool:
+        return self.norms.shape[0] == T.shape[0]
+
+
+def scan_isf(T: np.ndarray) -> tuple[np.ndarray, IsfScan]:
+    """Check an ISF matrix and measure it in one pass over its rows (T can be a memory
+    map: each block of rows is read once and every check and sum runs on it while it is
+    in cache). Returns T (as an array) and its :class:`IsfScan`.
+
+    Raises TransportError for a non-square or non-finite T (the first non-finite entry
+    in row order, as a row-by-row check finds it), a zero column or two identical
+    columns, naming the beam.
+    """
+    T = _check_isf(T)
+    m = T.shape[0]
+    keys_from = np.random.default_rng(0).standard_normal(m)  # the random projection of _duplicate_columns
+    sq = np.zeros(m)
+    neg_sq = np.zeros(m)
+    keys = np.zeros(m)
+    negatives = 0
+    step = max(1, _SCAN_BYTES // (m * T.dtype.itemsize))
+    for i0 in range(0, m, step):
+        block = np.asarray(T[i0:i0 + step])
+        block_sq = np.einsum("ij,ij->j", block, block, dtype=np.float64)
+        if not np.isfinite(block_sq).all():  # a non-finite entry (or squares past 1e308): look
+            finite = np.isfinite(block)
+            if not finite.all():
+                i, j = np.argwhere(~finite)[0]
+                raise TransportError(f"T holds a non-finite value {T[i0 + i, j]} at pixel row {i0 + i}, "
+                                     f"beam column {j}")
+        sq += block_sq
+        keys += np.einsum("i,ij->j", keys_from[i0:i0 + step], block)  # a gemv on few rows is slower
+        neg = np.minimum(block, 0, dtype=np.float64)
+        neg_sq += np.einsum("ij,ij->j", neg, neg)
+        negatives += int(np.count_nonzero(neg))
+    norms = np.sqrt(sq)
+    zero = np.flatnonzero(norms == 0)
+    if zero.size:
+        raise TransportError(f"T column {zero[0]} (beam {zero[0]}) is all zero: that beam lit nothing")
+    dup = _duplicate_columns(T, keys)
+    if dup is not None:
+        raise TransportError(
+            f"T columns {dup[0]} and {dup[1]} are identical (two beams on the same point?): T is singular"
+        )
+    return T, IsfScan(norms=norms, negative_squares=neg_sq, negatives=negatives)
+
+
+def _duplicate_columns(T: np.ndarray, keys: np.ndarray | None = None) -> tuple[int, int] | None:
+    """First pair of identical columns of ``T``, found by a random projection (``keys``,
+    :func:`scan_isf` computes it in its pass) then confirmed."""
+    if keys is None:
+        keys = np.random.default_rng(0).standard_normal(T.shape[0]) @ T
     order = np.argsort(keys, kind="stable")
     same = np.flatnonzero(keys[order][1:] == keys[order][:-1])
     for s in same:
@@ -174,26 +237,20 @@ def one_norm_estimate(operator, columns: int = 4) -> float:
         np.random.set_state(state)
 
 
-def prepare_isf(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def prepare_isf(T: np.ndarray, scan: IsfScan | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Check an ISF matrix and return it with its column 2-norms (m,) float64.
 
     Raises TransportError for a non-square or non-finite T, a zero column or two
-    identical columns, naming the beam.
+    identical columns, naming the beam. ``scan``: T's :func:`scan_isf` when the caller
+    has it (T was checked then; no pass over T again).
     """
-    T = _check_isf(T)
-    norms = np.sqrt(np.einsum("ij,ij->j", T, T, dtype=np.float64))
-    zero = np.flatnonzero(norms == 0)
-    if zero.size:
-        raise TransportError(f"T column {zero[0]} (beam {zero[0]}) is all zero: that beam lit nothing")
-    dup = _duplicate_columns(T)
-    if dup is not None:
-        raise TransportError(
-            f"T columns {dup[0]} and {dup[1]} are identical (two beams on the same point?): T is singular"
-        )
-    return T, norms
+    if scan is not None and scan.matches(T):
+        return np.asarray(T), scan.norms
+    T, scan = scan_isf(T)
+    return T, scan.norms
 
 
-def cancellation_operator(T: np.ndarray, dtype=np.float64) -> CancellationOperator:
+def cancellation_operator(T: np.ndarray, dtype=np.float64, scan: IsfScan | None = None) -> CancellationOperator:
     """Build ``C1 = T1 T^-1`` from an ISF matrix (paper Eq. 13).
 
     Parameters
@@ -204,13 +261,14 @@ def cancellation_operator(T: np.ndarray, dtype=np.float64) -> CancellationOperat
     dtype : np.float64 (default) or np.float32
         Precision of the factorisation (float32 halves memory and time and gives
         ``T1`` to about 1e-7 times the condition number; see ilt.solvers "mixed").
+    scan : T's :func:`scan_isf` when the caller has it (saves a pass over T).
 
     Raises
     ------
     TransportError
         Non-square, non-finite, a zero column, identical columns, or singular ``T``.
     """
-    T, norms = prepare_isf(T)
+    T, norms = prepare_isf(T, scan)
     # Equilibrate columns: C1 does not depend on them (paper Sec. 3) and LU is better
     # conditioned on unit columns. This is the only m x m copy we make: in T's own C
     # order (a straight copy; a Fortran-order one transposes in memory, 4 s at m = 12288),
@@ -355,12 +413,31 @@ def bounce_images(
     )
 
 
-def spectral_radius(operator: CancellationOperator, seed: int = 0) -> float:
+#: relative accuracy of ``spectral_radius_A`` (ARPACK's stopping test, below)
+RHO_TOL = 1e-3
+#: Krylov basis size of that estimate: the dominant eigenvalue of a scene's ``A`` (the
+#: Perron root of a non-negative matrix) stands apart, so a small basis finds it in a
+#: few applies of ``C1``; each apply reads all the factors (4.8 s at m = 12288 took
+#: ARPACK's default basis of 20 and tolerance 1e-8)
+RHO_NCV = 6
+#: within this of 1 the estimate is refined to ``RHO_REFINED_TOL``, so ``rho >= 1``
+#: (the warning) is decided as sharply as a tight estimate decides it
+RHO_REFINE_BAND = 10 * RHO_TOL
+RHO_REFINED_TOL = 1e-8
+
+
+def spectral_radius(operator: CancellationOperator, seed: int = 0, tol: float = RHO_TOL) -> float:
     """Largest ``|eigenvalue|`` of ``A = I - C1`` from matrix-vector products (ARPACK).
 
     For a physical scene ``A = P K`` is non-negative with row sums < 1, so the value is
     < 1 and the bounce series converges; >= 1 means ``T`` is not a Lambertian ISF
     (noise, flare, a bad spot).
+
+    Accuracy: ARPACK stops when the Ritz pair's residual is at most ``tol`` times the
+    value, ``||A x - rho x|| <= tol rho ||x||``: ``rho`` is an eigenvalue of a matrix
+    within ``tol rho`` of A (relative error ``tol`` where A's dominant eigenvector is
+    well conditioned, as a Perron vector is). A value within ``RHO_REFINE_BAND`` of 1
+    is recomputed to ``RHO_REFINED_TOL``.
     """
     m = operator.m
     if m <= 2:
@@ -368,11 +445,17 @@ def spectral_radius(operator: CancellationOperator, seed: int = 0) -> float:
         return float(np.max(np.abs(np.linalg.eigvals(np.eye(m) - C1))))
     a = LinearOperator((m, m), matvec=lambda x: x - operator.apply(np.ravel(x)), dtype=np.float64)
     v0 = np.random.default_rng(seed).uniform(0.5, 1.0, m)
+    # a loose tolerance with a small basis; ARPACK needs 2 < ncv <= m (k = 1)
+    ncv = min(m, RHO_NCV if tol > RHO_REFINED_TOL else 20)
     try:
-        vals = eigs(a, k=1, which="LM", v0=v0, tol=1e-8, maxiter=max(1000, 10 * m), return_eigenvectors=False)
+        vals = eigs(a, k=1, which="LM", v0=v0, tol=tol, ncv=ncv, maxiter=max(1000, 10 * m),
+                    return_eigenvectors=False)
     except (ArpackNoConvergence, ArpackError):
         return _power_iteration(operator, v0)
-    return float(np.max(np.abs(vals)))
+    rho = float(np.max(np.abs(vals)))
+    if tol > RHO_REFINED_TOL and abs(rho - 1) <= RHO_REFINE_BAND:
+        return spectral_radius(operator, seed, tol=RHO_REFINED_TOL)
+    return rho
 
 
 def _power_iteration(operator: CancellationOperator, v: np.ndarray, steps: int = 500) -> float:

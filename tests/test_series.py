@@ -176,7 +176,7 @@ def test_load_operator_keeps_the_reason_auto_gave():
     op, diagnostics = load_operator(T, None, "series")
     assert diagnostics["solver"] == "series" and diagnostics["solver_reason"] == "asked for series"
     assert diagnostics["spectral_radius_A"] == pytest.approx(np.sqrt(np.max(A[::2, 1::2].diagonal()
-                                                                         * A[1::2, ::2].diagonal())), rel=1e-6)
+                                                                         * A[1::2, ::2].diagonal())), rel=1e-3)
     assert np.isfinite(diagnostics["condition_estimate"])
 
 

@@ -92,3 +92,69 @@ def test_the_group_search_stops_at_a_group_of_more_than_half_and_decides_the_sam
     T3, _ = independent_objects(3)                                    # every group <= m / 2: searched in full
     name, reason = choose_solver(T3, None)
     assert name == "blocks" and "3 independent groups" in reason
+
+
+def test_one_scan_checks_t_measures_the_noise_and_feeds_the_build(monkeypatch):
+    """load_operator reads T once for its checks, column norms and noise (scan_isf);
+    estimate_noise from the scan equals the blockwise definition, and the build reuses
+    the scan instead of checking T again."""
+    from ilt import decompose as dec, transport
+    from ilt.transport import scan_isf
+
+    T, _ = independent_objects(2)
+    noisy = T + np.random.default_rng(2).normal(scale=1e-3, size=T.shape)
+    Tn = noisy / np.linalg.norm(noisy, axis=0)
+    assert estimate_noise(noisy) == pytest.approx(np.sqrt(np.mean(Tn[Tn < 0] ** 2)), rel=1e-12)
+    _, scan = scan_isf(noisy)
+    np.testing.assert_allclose(scan.norms, np.linalg.norm(noisy, axis=0), rtol=1e-14)
+    assert scan.negatives == int((noisy < 0).sum())
+    scans = []
+    real = transport.scan_isf
+    monkeypatch.setattr(transport, "scan_isf", lambda T: scans.append(1) or real(T))
+    monkeypatch.setattr(dec, "scan_isf", lambda T: scans.append(1) or real(T))
+    op, diag = dec.load_operator(noisy, None, solver="dense")
+    assert len(scans) == 1
+    assert diag["noise"] == pytest.approx(estimate_noise(noisy))
+    ref = cancellation_operator(noisy)
+    np.testing.assert_allclose(op.t1_unit, ref.t1_unit, rtol=1e-13)
+
+
+def test_scan_refuses_what_the_row_by_row_checks_refused():
+    from ilt.transport import scan_isf
+
+    T = np.eye(600) + 0.01
+    for value, where in ((np.inf, (400, 7)), (np.nan, (3, 599))):
+        bad = T.copy()
+        bad[where] = value
+        bad[where[0] + 100 if where[0] < 500 else 0, 1] = np.nan  # a later one is not named
+        with pytest.raises(TransportError, match=f"pixel row {where[0]}, beam column {where[1]}"):
+            scan_isf(bad)
+    huge = T * 1e200  # squares overflow, entries finite: still an ISF as far as the checks go
+    scan_isf(huge)
+    dup = T.copy()
+    dup[:, 9] = dup[:, 4]
+    with pytest.raises(TransportError, match="columns 4 and 9 are identical"):
+        scan_isf(dup)
+    zero = T.copy()
+    zero[:, 5] = 0
+    with pytest.raises(TransportError, match="column 5 .* all zero"):
+        scan_isf(zero)
+
+
+def test_mixed_refinement_runs_on_one_blas():
+    """MixedOperator's residual products go through scipy's BLAS, the library of its
+    float32 solves (numpy's and scipy's OpenBLAS pools fought; docs/numerics.md), and
+    give numpy's product."""
+    from ilt.solvers import _product
+
+    rng = np.random.default_rng(0)
+    T = rng.random((300, 300)) + 300 * np.eye(300)
+    x, X = rng.random(300), rng.random((300, 3))
+    np.testing.assert_allclose(_product(T, x), T @ x, rtol=1e-13)
+    np.testing.assert_allclose(_product(T, X), T @ X, rtol=1e-13)
+    np.testing.assert_allclose(_product(np.asfortranarray(T), X), T @ X, rtol=1e-13)  # not C order: numpy's
+    op, _ = build_operator(T, "mixed")
+    assert op.solver == "mixed"
+    # T1 comes from the float32 factors (about 1e-7 relative); the solves are refined to float64
+    np.testing.assert_allclose(op.apply(X), cancellation_operator(T).apply(X), rtol=1e-5)
+    np.testing.assert_allclose(op.solve(X), np.linalg.solve(T / np.linalg.norm(T, axis=0), X), rtol=1e-12)

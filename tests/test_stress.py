@@ -28,7 +28,8 @@ def test_albedo_near_one(albedo):
     A, T = closed_enclosure(150, albedo)
     op = cancellation_operator(T)
     d = operator_diagnostics(T, op)
-    assert d["spectral_radius_A"] == pytest.approx(albedo, rel=1e-6)
+    # within ilt.transport.RHO_TOL (1e-3) of rho; within 1e-2 of 1 it is refined to 1e-8
+    assert d["spectral_radius_A"] == pytest.approx(albedo, rel=1e-6 if albedo > 0.99 else 1e-3)
     L1 = np.random.default_rng(1).uniform(size=150)
     L = np.linalg.solve(np.eye(150) - A, L1)
     truth = [L1]

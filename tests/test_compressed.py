@@ -176,6 +176,7 @@ def test_decompose_cli_with_compressed(tmp_path, monkeypatch):
                                       str(tmp_path / "out"), "--no-cache", "--solver", "compressed", "--noise",
                                       "1e-9", "--bounces", "3", "--json"])
     assert result.exit_code == 0, result.output
+    assert "no sample positions" in result.stderr   # a bare T.npy: the tree by index, said so
     summary = json.loads(result.stdout)[0]
     assert summary["operators"]["solver"] == "compressed"
     assert summary["operators"]["compressed"]["tol"] == 1e-9

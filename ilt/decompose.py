@@ -19,7 +19,7 @@ import numpy as np
 from ilt.cells import integrate, mosaic
 from ilt.compressed import grid_points
 from ilt.frames import FrameError, PixelMapping
-from ilt.fullres import FineError, FineOperator, full_resolution, load_fine
+from ilt.fullres import FINE_DIR, FineError, FineOperator, full_resolution, load_fine
 from ilt.imageio import ImageError, read_exr, write_exr
 from ilt.isf import ISF
 from ilt.layout import sample_frame, splat, vector_to_image
@@ -422,7 +422,7 @@ def decompose(
     out = Path(out)
     fingerprint = fingerprint_array(np.asarray(isf.T))
     parameters = {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
-                  "samples_only": samples_only}
+                  "samples_only": samples_only, "fine": _fine_fingerprint(isf, samples_only)}
     done = {}
     for photo in photos:
         if (out / photo.name).exists() and not force:
@@ -474,7 +474,7 @@ def decompose(
                 log.warning("%s: %d saturated pixels (values are lower bounds) left out of the full-resolution "
                             "images (coverage 0, all residual)", photo.path, int(photo.saturated.sum()))
             with staged_directory(out / photo.name, force=force) as tmp:
-                write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1_unit * op.column_norms)
+                write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1)
                 write_manifest(
                     tmp, "decompose", parameters,
                     inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): op_diag["fingerprint"]},
@@ -486,6 +486,13 @@ def decompose(
             out.rmdir()
         raise
     return [done.get(p.name) or summaries[p.name] for p in photos]
+
+
+def _fine_fingerprint(isf: ISF, samples_only: bool) -> str | None:
+    """The fine operator a decomposition used, by its manifest's hash (None: none), so a
+    re-run after ``fine/`` was built or rebuilt is not taken for one already done."""
+    manifest = Path(isf.path).parent / FINE_DIR / MANIFEST
+    return None if samples_only or not manifest.exists() else fingerprint_file(manifest)
 
 
 def _previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dict | None:

@@ -348,22 +348,28 @@ def run_chunks(function: Callable, tasks: Iterable[tuple], executor: Executor | 
         return
     pending: deque = deque()
     tasks = iter(tasks)
-    while True:
-        for task in tasks:
-            pending.append((task[0], executor.submit(function, *task)))
-            if len(pending) >= in_flight:
-                break
-        if not pending:
-            return
-        beams, future = pending[0]
-        try:
-            result = future.result()
-        except BrokenExecutor:
-            raise WorkerError(_lost_beams(executor, pending)) from None
-        pending.popleft()
-        yield result
-        if progress:
-            progress(len(beams))
+    try:
+        while True:
+            for task in tasks:
+                pending.append((task[0], executor.submit(function, *task)))
+                if len(pending) >= in_flight:
+                    break
+            if not pending:
+                return
+            beams, future = pending[0]
+            try:
+                result = future.result()
+            except BrokenExecutor:
+                raise WorkerError(_lost_beams(executor, pending)) from None
+            pending.popleft()
+            yield result
+            if progress:
+                progress(len(beams))
+    finally:
+        # the caller failed or stopped reading (a bad beam, a signal): no chunk of this
+        # stage may go on writing, on a pool the caller keeps (a cluster) least of all
+        for _, future in pending:
+            future.cancel()
 
 
 def _lost_beams(executor: Executor, pending: deque) -> str:

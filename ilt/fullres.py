@@ -207,18 +207,16 @@ class FineAccumulator:
         return share
 
 
-def write_fine(directory: Path, coefficients: np.ndarray | None, degree: int, T: np.ndarray,
-               labels_fingerprint: str, frames: dict, share: np.ndarray | None = None) -> None:
-    """``directory/fine/``: coefficients.npy (K, m, m) float32 (none for degree 0, or None
-    when the caller wrote it there itself, :class:`FineAccumulator`) and a
-    manifest with the degree and the fingerprints of what it was built from (T, the cells,
-    the frames' directory), checked by :func:`load_fine`."""
-    from ilt.manifest import save_npy, write_manifest
+def write_fine(directory: Path, degree: int, T: np.ndarray, labels_fingerprint: str, frames: dict,
+               share: np.ndarray | None = None) -> None:
+    """The manifest of ``directory/fine/`` (the build wrote coefficients.npy there, a
+    memory map filled by :class:`FineAccumulator`; none for degree 0): the degree and the
+    fingerprints of what it was built from (T, the cells, the frames' directory), checked
+    by :func:`load_fine`."""
+    from ilt.manifest import write_manifest
 
     fine = Path(directory) / FINE_DIR
-    fine.mkdir(exist_ok=True)   # the build may have written coefficients.npy there already (a memory map)
-    if coefficients is not None and coefficients.size:
-        save_npy(fine / COEFFICIENTS_FILE, coefficients)
+    fine.mkdir(exist_ok=True)
     write_manifest(fine, "fine-operator", {"degree": degree},
                    inputs={"T": fingerprint_array(np.asarray(T)), "cells": labels_fingerprint, **frames},
                    extra={"terms": basis_terms(degree), "m": int(T.shape[0]),

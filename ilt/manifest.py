@@ -20,6 +20,7 @@ import os
 import re
 import secrets
 import shutil
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -28,6 +29,10 @@ import numpy as np
 from ilt import __version__
 
 MANIFEST = "manifest.json"
+#: the run record ``ilt run`` keeps beside a stage's manifest (:mod:`ilt.stage`)
+RECORD = ".stage.json"
+#: a capture's journal (:mod:`ilt.capture.loop`): the raw data it names is never replaced
+LOG_NAME = "capture.jsonl"
 
 
 class StageError(ValueError):
@@ -52,14 +57,17 @@ def fingerprint_array(a: np.ndarray) -> str:
 
 
 #: a temporary name of :func:`atomic_path` or :func:`staged_directory`:
-#: ``.<name>.tmp-<pid>-<random>`` (``.old-`` for a replaced directory on its way out);
-#: the pid of the process filling it tells a stale one (its process is gone) from one
-#: a concurrent run is filling
-TEMPORARY = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?P<pid>\d+)-")
+#: ``.<name>.tmp-<pid>@<host>-<random>`` (``.old-`` for a replaced directory on its way
+#: out); the pid of the process filling it tells a stale one (its process is gone) from
+#: one a concurrent run is filling, on the host that made it (a digest of its name: a
+#: workspace on shared storage is filled from other machines too, whose pids mean
+#: nothing here)
+TEMPORARY = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?P<pid>\d+)(?:@(?P<host>[0-9a-f]+))?-")
+_HOST = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
 
 
 def _temporary_name(name: str, kind: str, suffix: str = "") -> str:
-    return f".{name}.{kind}-{os.getpid()}-{secrets.token_hex(4)}{suffix}"
+    return f".{name}.{kind}-{os.getpid()}@{_HOST}-{secrets.token_hex(4)}{suffix}"
 
 
 def _alive(pid: int) -> bool:
@@ -74,12 +82,12 @@ def _alive(pid: int) -> bool:
 
 def remove_stale_temporaries(directory: str | os.PathLike) -> list[Path]:
     """Remove the temporary files and directories in ``directory`` (not below) left by
-    ilt processes that are gone (killed mid-write); returns what was removed."""
+    ilt processes of this host that are gone (killed mid-write); returns what was removed."""
     removed = []
     with os.scandir(directory) as entries:
         for entry in entries:
             m = TEMPORARY.match(entry.name)
-            if m is None or _alive(int(m["pid"])):
+            if m is None or m["host"] not in (None, _HOST) or _alive(int(m["pid"])):
                 continue
             if entry.is_dir(follow_symlinks=False):
                 shutil.rmtree(entry.path, ignore_errors=True)
@@ -238,8 +246,6 @@ def _foreign(directory: Path, files: list[str]) -> list[str]:
     and what lies in its temporary directories (a killed ``ilt decompose``'s).
     A directory without a readable manifest owns nothing.
     """
-    from ilt.stage import RECORD
-
     top = _manifest_or_none(directory)
     if top is None:
         return files
@@ -259,7 +265,6 @@ def _foreign(directory: Path, files: list[str]) -> list[str]:
 
 def _refusal(final: Path) -> str | None:
     """Why ``final`` may not be replaced by a stage's output, or None when it may."""
-    from ilt.capture.loop import LOG_NAME
     from ilt.workspace import workspace_marks
 
     resolved = final.resolve()

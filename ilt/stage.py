@@ -30,6 +30,7 @@ from pathlib import Path
 
 from ilt.manifest import (
     MANIFEST,
+    RECORD,
     StageError,
     fingerprint_file,
     read_manifest,
@@ -38,7 +39,6 @@ from ilt.manifest import (
 
 log = logging.getLogger(__name__)
 
-RECORD = ".stage.json"
 
 DONE, STALE, MISSING = "done", "stale", "missing"
 

@@ -147,14 +147,18 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next_merge_a_live_ones_kep
     stale_file.write_text("half written")
     filling = workspace / f".hdr.tmp-{live}-x"
     filling.mkdir()
+    elsewhere = workspace / f".hdr.tmp-{dead}@00000000-x"   # another host's run filling it, on shared storage
+    elsewhere.mkdir()
     (filling / "beam-00000.exr").write_bytes(b"being written")
     try:
         assert invoke("merge", "-w", workspace, "--force").exit_code == 0
         assert not any(p.exists() for p in [*stale, stale_file])
         assert (filling / "beam-00000.exr").read_bytes() == b"being written"
+        assert elsewhere.is_dir()
     finally:
         (filling / "beam-00000.exr").unlink()
         filling.rmdir()
+        elsewhere.rmdir()
 
 
 def test_an_operator_cache_entry_is_rebuilt_when_unreadable_also_one_without_manifest(tmp_path, monkeypatch):

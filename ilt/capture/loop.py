@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.manifest import fingerprint_file, write_manifest
+from ilt.manifest import LOG_NAME, fingerprint_file, write_manifest
 
 from .adaptive import AdaptiveBracket
 from .camera import GPhoto2Camera, make_sim_camera
@@ -47,7 +47,6 @@ from .ptu import PanTilt
 
 log = logging.getLogger(__name__)
 
-LOG_NAME = "capture.jsonl"
 ATTIC = ".incomplete"
 EMULATOR = "emulator"
 

@@ -117,19 +117,16 @@ class CellGeometry:
                 terms.append(q - mean[self.label])
         return np.array(terms) if terms else np.empty((0, self.inside.size))
 
+    def gram(self, degree: int, B: np.ndarray | None = None) -> np.ndarray:
+        """(m, K, K) float64 ``B^T B`` of every cell's basis (``B``: :meth:`basis`, if at hand)."""
+        K, m = basis_terms(degree), self.m
+        B = self.basis(degree) if B is None else B
+        gram = np.zeros((m, K, K))
+        for a in range(K):
+            for b in range(a, K):
+                gram[:, a, b] = gram[:, b, a] = np.bincount(self.label, B[a] * B[b], m)
+        return gram
 
-def _gram(geometry: CellGeometry, degree: int, B: np.ndarray | None = None) -> np.ndarray:
-    """(m, K, K) float64 ``B^T B`` of every cell's basis."""
-    K, m = basis_terms(degree), geometry.m
-    B = geometry.basis(degree) if B is None else B
-    gram = np.zeros((m, K, K))
-    for a in range(K):
-        for b in range(a, K):
-            gram[:, a, b] = gram[:, b, a] = np.bincount(geometry.label, B[a] * B[b], m)
-    return gram
-
-
-CellGeometry.gram = _gram
 
 #: a cell whose polynomial explains less than this share of its frames' variation about
 #: the cell mean (beams of other cells, pooled) is taken as flat: it straddles a fold or

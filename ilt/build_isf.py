@@ -272,7 +272,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                 share = accumulator.finish()
                 accumulator.out.flush()
                 del accumulator
-            write_fine(tmp, fine_degree, T, fingerprint_array(labels), frames_inputs(hdr.path), share)
+            write_fine(tmp, fine_degree, T, fingerprint_array(labels), frames_inputs(hdr.path, out), share)
         fields = {"sampling": sampling, "beams": plan, "drops": drops,
                   "pixel_mapping": hdr.mapping.as_dict()}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)

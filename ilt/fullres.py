@@ -285,12 +285,17 @@ def load_fine(isf, t_fingerprint: str | None = None) -> tuple[FineOperator | Non
         raise FineError(f"{directory}: built on other cells than {isf.path.parent / 'cells.exr'}; "
                         "run ilt build-isf again")
     for where, fingerprint in inputs.items():
-        if where.startswith("frames ") and Path(where[7:]).exists():
-            from ilt.stage import fingerprint_input
+        if not where.startswith("frames "):
+            continue
+        frames = Path(isf.path).parent / where[7:]   # relative to the ISF (an absolute path stays as it is)
+        if not (frames / MANIFEST).exists():
+            log.info("%s: the frames it was built from (%s) are not here: not checked", directory, frames)
+            continue
+        from ilt.stage import fingerprint_input
 
-            if fingerprint_input(where[7:]) != fingerprint:
-                raise FineError(f"{directory}: the frames in {where[7:]} changed since the fine operator was "
-                                "built; run ilt build-isf again")
+        if fingerprint_input(frames) != fingerprint:
+            raise FineError(f"{directory}: the frames in {os.path.normpath(frames)} changed since the fine "
+                            "operator was built; run ilt build-isf again")
     degree = int(manifest.get("parameters", {}).get("degree", -1))
     K = basis_terms(degree) if degree in DEGREES else -1
     m = isf.m
@@ -358,15 +363,16 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
             + ["indirect", "residual", "coverage"]}
 
 
-def frames_inputs(hdr_path: str | os.PathLike) -> dict:
+def frames_inputs(hdr_path: str | os.PathLike, isf_dir: str | os.PathLike) -> dict:
     """The fingerprint of a beam frames' directory (its manifest, no frame re-read) to
-    record in the fine operator, or nothing when it has no manifest."""
+    record in the fine operator, by its path from the ISF directory ``isf_dir`` (so the
+    check holds when the workspace moves), or nothing when it has no manifest."""
     from ilt.stage import fingerprint_input
 
     path = Path(hdr_path)
     if not (path / MANIFEST).exists():
         return {}
-    return {f"frames {path.absolute()}": fingerprint_input(path)}
+    return {f"frames {os.path.relpath(path.absolute(), Path(isf_dir).absolute())}": fingerprint_input(path)}
 
 
 __all__ = ["FineOperator", "FineError", "CellGeometry", "fit_operator", "FineAccumulator", "write_fine",

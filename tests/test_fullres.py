@@ -222,6 +222,18 @@ def test_changed_frames_are_refused(scans, tmp_path):
         (hdr / "manifest.json").write_text(saved)
 
 
+def test_changed_frames_are_refused_in_a_moved_workspace(scans, tmp_path):
+    """fine/ names its frames by their path from the ISF: the check travels with the scan."""
+    sim, isf_dir, _ = scans[16]
+    moved = tmp_path / "moved"
+    shutil.copytree(isf_dir.parent, moved, ignore=shutil.ignore_patterns("dec"))
+    manifest = json.loads((moved / "sim" / "hdr" / "manifest.json").read_text())
+    manifest["parameters"]["seed"] = 99
+    (moved / "sim" / "hdr" / "manifest.json").write_text(json.dumps(manifest))
+    _refused(["decompose", "--isf", moved / "isf", moved / "sim" / "photos" / "room.exr", "-o", tmp_path / "out",
+              "--no-cache"], tmp_path / "out", str(moved / "sim" / "hdr"), "changed")
+
+
 def test_bad_photos_are_refused(scans, tmp_path):
     sim, isf_dir, _ = scans[16]
     photo = read_exr(sim / "photos" / "room.exr")[0][:, :, 0]

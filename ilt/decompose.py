@@ -423,10 +423,11 @@ def decompose(
     fingerprint = fingerprint_array(np.asarray(isf.T))
     parameters = {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
                   "samples_only": samples_only, "fine": _fine_fingerprint(isf, samples_only)}
+    hashes = {photo.name: fingerprint_file(photo.path) for photo in photos}   # each photo read once
     done = {}
     for photo in photos:
         if (out / photo.name).exists() and not force:
-            wanted = {fingerprint_file(photo.path), fingerprint}
+            wanted = {hashes[photo.name], fingerprint}
             previous = _previous_result(out / photo.name, parameters, wanted)
             if previous is None:
                 raise InputError(f"{out / photo.name} exists and was not made from {photo.path} with these "
@@ -464,7 +465,7 @@ def decompose(
             full = fine is not None and photo.frame
             summary = {
                 "input": str(photo.path),
-                "input_fingerprint": fingerprint_file(photo.path),
+                "input_fingerprint": hashes[photo.name],
                 "isf": str(isf.path),
                 "operators": op_diag,
                 "decomposition": diag,

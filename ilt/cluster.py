@@ -1,8 +1,11 @@
-"""The per-beam stages on a Dask cluster (``--scheduler``; docs/cluster.md).
+"""The per-beam stages and the compressed solver on a Dask cluster (``--scheduler``;
+docs/cluster.md).
 
 One seam: :func:`executor_for` turns a scheduler address into the
 ``concurrent.futures.Executor`` that merge, centroids and build-isf take as their
-``executor=`` argument, or None, the default, under which they run on a process pool
+``executor=`` argument, and ``compressed`` for its blocks
+(:func:`ilt.compressed.compressed_operator`, reading T from its memory-mapped file),
+or None, the default, under which they run on a process pool (the solver: threads)
 of this machine (:mod:`ilt.workers`) and nothing of Dask is imported.
 
 Workers receive paths and beam ranges, never frames; what a task returns (a beam's
@@ -18,6 +21,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import os
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -67,7 +71,17 @@ class ClusterExecutor(cf.Executor):
     its own) whose futures fail with :class:`ClusterLost`, a ``BrokenExecutor``, when
     the cluster loses a task for good, with :meth:`lost` saying which and how, as
     :class:`ilt.workers.BeamPool` does for a dead process. A worker that dies is
-    otherwise Dask's business: its tasks run again on the others."""
+    otherwise Dask's business: its tasks run again on the others.
+
+    A lost scheduler fails every future it handed out with :class:`SchedulerLost`, at
+    once: Dask cancels the tasks it knows of when the connection drops, but a task
+    submitted while it tries to reconnect is never cancelled, and waiting for it hung
+    ``ilt merge`` in one of four runs of tests/test_cluster.py's stopped-scheduler test."""
+
+    #: consecutive chunks of a stage in one task (:func:`ilt.frames.run_chunks`): a task
+    #: costs a round trip through the scheduler, a few ms, against 80 ms for a chunk of
+    #: 16 small frames
+    chunks_per_task = 4
 
     def __init__(self, client, directory: str | None = None, address: str | None = None):
         self.client = client
@@ -78,21 +92,42 @@ class ClusterExecutor(cf.Executor):
         self._lost: list[tuple[cf.Future, str]] = []
         #: whether the connection to the scheduler was lost (every task cancelled)
         self.scheduler_lost = False
+        self._outstanding: set[cf.Future] = set()
+        self._lock = threading.Lock()
+
+    def _connected(self) -> bool:
+        return not self.scheduler_lost and getattr(self.client, "status", "running") == "running"
+
+    def _fail_outstanding(self) -> None:
+        """The scheduler is gone: every future not done fails with SchedulerLost."""
+        self.scheduler_lost = True
+        with self._lock:
+            waiting = list(self._outstanding)
+        for outer in waiting:
+            try:
+                outer.set_exception(SchedulerLost(
+                    f"{self.address}: the connection to the Dask scheduler was lost mid-stage (it stopped, or "
+                    "its machine or the network went away); the stage's unfinished beams were cancelled and "
+                    "nothing was written: start the scheduler again and re-run"))
+            except cf.InvalidStateError:  # done meanwhile
+                pass
 
     def submit(self, fn, /, *args, **kwargs) -> cf.Future:
-        inner = self._inner.submit(in_directory, self.directory, fn, *args, **kwargs)
         outer: cf.Future = cf.Future()
+        with self._lock:
+            self._outstanding.add(outer)
+        outer.add_done_callback(self._forget)
+        if not self._connected():
+            self._fail_outstanding()
+            return outer
+        inner = self._inner.submit(in_directory, self.directory, fn, *args, **kwargs)
 
         def done(f: cf.Future) -> None:
             if outer.done():
                 return
             try:
                 if f.cancelled():   # not by us (then outer is done): the scheduler went away
-                    self.scheduler_lost = True
-                    outer.set_exception(SchedulerLost(
-                        f"{self.address}: the connection to the Dask scheduler was lost mid-stage (it stopped, or "
-                        "its machine or the network went away); the stage's unfinished beams were cancelled and "
-                        "nothing was written: start the scheduler again and re-run"))
+                    self._fail_outstanding()
                 elif (exc := f.exception()) is None:
                     outer.set_result(f.result())
                 elif _is_lost(exc):
@@ -106,10 +141,20 @@ class ClusterExecutor(cf.Executor):
 
         outer.add_done_callback(lambda o: o.cancelled() and inner.cancel())
         inner.add_done_callback(done)
+        if not self._connected():   # lost while this task was being sent: Dask will not cancel it
+            self._fail_outstanding()
         return outer
+
+    def _forget(self, outer: cf.Future) -> None:
+        with self._lock:
+            self._outstanding.discard(outer)
 
     def lost(self) -> list[tuple[cf.Future, str]]:
         return list(self._lost)
+
+    def worker_threads(self) -> int:
+        """Tasks the cluster's workers run at once now (their threads, all told)."""
+        return sum(self.client.nthreads().values())
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         self._inner.shutdown(wait=wait and not cancel_futures)
@@ -250,7 +295,7 @@ def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[
         client.register_plugin(_one_thread_plugin())
         dashboard = _dashboard(client)
         n = len(client.scheduler_info().get("workers", {}))
-        log.info("per-beam stages on %s (%d workers)%s", where, n, f"; dashboard {dashboard}" if dashboard else "")
+        log.info("tasks run on %s (%d workers)%s", where, n, f"; dashboard {dashboard}" if dashboard else "")
         if n == 0:
             log.warning("%s has no workers yet: the stages wait for some ('dask worker %s')", address, address)
         executor = ClusterExecutor(client, address=client.scheduler.address if cluster is not None else address)

@@ -39,7 +39,9 @@ less below; every entry of T is read into memory once, a block at a time, so T m
 a memory-mapped ``T.npy``; factorisation O(m r^2 log^2 m); storage O(m r log m)
 (``memory`` in the figures, against ``8 m^2`` for one dense matrix); a solve of k
 vectors O(k m r log m). The blocks are compressed on a thread per core, each with one
-BLAS thread, and the two halves of the tree are factorised and solved side by side.
+BLAS thread, or as tasks on a Dask cluster's workers that map T's file themselves
+(``executor``, :func:`_compress_on`; docs/cluster.md), and the two halves of the tree
+are factorised and solved side by side.
 
 Accuracy is checked, not assumed: one solve is multiplied back by T itself, and a
 residual far above what the tolerance allows is refused with the figure.
@@ -62,12 +64,14 @@ import threadpoolctl
 from scipy.sparse.linalg import LinearOperator
 
 from ilt.transport import (
+    IsfScan,
     TransportError,
     UnitColumnOperator,
     check_photo,
     one_norm_estimate,
     prepare_isf,
     scale_rows,
+    scan_isf,
 )
 
 log = logging.getLogger(__name__)
@@ -407,6 +411,220 @@ def grid_points(layout: tuple[int, int] | None, m: int, beams: np.ndarray | None
     return np.stack([beams // cols, beams % cols], axis=1).astype(np.float64)
 
 
+@dataclass(frozen=True)
+class _Build:
+    """What every block of one build shares: the tolerance per entry of T_n, the seed
+    of the blocks' generators, and whether the range finder iterates (a noise floor)."""
+
+    tol: float
+    seed: int
+    power: bool
+
+
+def _gather(T, rows: np.ndarray, cols: np.ndarray, inv_norms: np.ndarray, buffer) -> np.ndarray:
+    """``T_n[rows][:, cols]`` (float64) for sorted ``rows`` and ``cols``, read in index
+    order into ``buffer(size)``: a slice of the map where both are ranges (T in index
+    order), else row by row."""
+    b = buffer(rows.size * cols.size).reshape(rows.size, cols.size)
+    if rows[-1] - rows[0] + 1 == rows.size and cols[-1] - cols[0] + 1 == cols.size:
+        b[...] = T[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    else:
+        for k, i in enumerate(rows):
+            np.take(T[i], cols, out=b[k])
+    b *= inv_norms[cols]
+    return b
+
+
+def _off_diagonal(T, order: np.ndarray, offset: int, node: tuple[int, int, int], side: int, inv_norms: np.ndarray,
+                  build: _Build, buffer) -> tuple[np.ndarray, np.ndarray]:
+    """``(U, V)`` of the off-diagonal block ``side`` (0: upper right) of the node over
+    tree positions ``lo:hi``, children split at ``mid`` (``node = (lo, mid, hi)``),
+    rows in tree order; ``order[i]``: the point at tree position ``offset + i`` (the
+    whole order, or a subtree's part of it). The block is gathered in index order
+    (0.13 s against 0.85 s in tree order for 6144 x 6144; U's and V's rows are put back
+    after). Each block draws from its own generator, so the result does not depend on
+    which thread or worker ran it."""
+    lo, mid, hi = node
+    halves = (order[lo - offset:mid - offset], order[mid - offset:hi - offset])
+    rows, cols = halves[side], halves[1 - side]
+    atol = build.tol * (math.sqrt(rows.size) + math.sqrt(cols.size))
+    by_row, by_col = np.argsort(rows), np.argsort(cols)
+    rng = np.random.default_rng([build.seed, lo, hi, side])
+    u_sorted, v_sorted = low_rank(_gather(T, rows[by_row], cols[by_col], inv_norms, buffer), atol, rng,
+                                  power=build.power)
+    u, v = np.empty_like(u_sorted), np.empty_like(v_sorted)
+    u[by_row], v[by_col] = u_sorted, v_sorted
+    return u, v
+
+
+def _leaf_inverse(T, idx: np.ndarray, where: tuple[int, int], inv_norms: np.ndarray,
+                  buffer) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of the leaf's dense block ``T_n[idx][:, idx]`` (``idx``: its points in
+    tree order, at tree positions ``where``) and its diagonal. TransportError when it is
+    singular to working precision."""
+    by_row = np.argsort(idx)
+    dense = np.empty((idx.size, idx.size))
+    dense[np.ix_(by_row, by_row)] = _gather(T, idx[by_row], idx[by_row], inv_norms, buffer)  # out of the buffer
+    lu = scipy.linalg.lu_factor(dense, check_finite=False)
+    pivots = np.abs(np.diag(lu[0]))
+    if pivots.min() <= inv_norms.size * np.finfo(float).eps * pivots.max():
+        raise TransportError(f"compressed: the block of points {where[0]}:{where[1]} (tree order) is singular "
+                             "to working precision; use --solver dense")
+    inverse = scipy.linalg.lu_solve(lu, np.eye(idx.size))
+    return inverse, np.diag(inverse).copy()
+
+
+def _split(node: Node) -> tuple[int, int, int]:
+    """``(lo, mid, hi)`` of a node with children."""
+    return node.lo, node.lo + node.children[0].size, node.hi
+
+
+@dataclass(frozen=True)
+class MappedFile:
+    """Where a memory-mapped T lies in its file, for a worker to map it again; its size
+    and modification time say whether the file a worker finds is the same one."""
+
+    path: str
+    offset: int
+    shape: tuple[int, int]
+    dtype: str
+    size: int
+    mtime_ns: int
+
+    def open(self) -> np.memmap:
+        """T mapped read-only. OSError naming the file when it is not there, or differs
+        in size or modification time from the one the build started from (another file
+        at the same path on this machine, or T rewritten meanwhile)."""
+        st = os.stat(self.path)
+        if (st.st_size, st.st_mtime_ns) != (self.size, self.mtime_ns):
+            raise OSError(f"{self.path}: not the T.npy the build started from (size {st.st_size} bytes against "
+                          f"{self.size}, or another modification time): it changed, or this machine sees "
+                          "another file at that path")
+        return np.memmap(self.path, dtype=self.dtype, mode="r", offset=self.offset, shape=self.shape)
+
+
+def mapped_file(T: np.ndarray) -> MappedFile | None:
+    """The file T is a whole, C-ordered memory map of (a ``np.load(..., mmap_mode="r")``
+    or a view of one), else None."""
+    base = T
+    while base is not None and not isinstance(base, np.memmap):
+        base = getattr(base, "base", None)
+    if base is None or getattr(base, "filename", None) is None or base.shape != T.shape or base.dtype != T.dtype:
+        return None
+    if not (T.flags.c_contiguous and T.ctypes.data == base.ctypes.data):
+        return None
+    st = os.stat(base.filename)
+    return MappedFile(str(base.filename), int(base.offset), tuple(T.shape), T.dtype.str, st.st_size, st.st_mtime_ns)
+
+
+def _block_task(source: MappedFile, order: np.ndarray, node: tuple[int, int, int], side: int,
+                inv_norms: np.ndarray, build: _Build) -> tuple[np.ndarray, np.ndarray]:
+    """On a worker: :func:`_off_diagonal` of one block (``order``: the node's points,
+    from its first tree position on), T mapped from ``source``, in a buffer of its own
+    (freed with the task: a worker keeps nothing between tasks)."""
+    T = source.open()
+    with one_blas_thread():
+        return _off_diagonal(T, order, node[0], node, side, inv_norms, build, np.empty)
+
+
+def _subtree_task(source: MappedFile, order: np.ndarray, top: Node, inv_norms: np.ndarray, build: _Build) -> dict:
+    """On a worker: every block and leaf of the subtree ``top`` (``order``: its points),
+    largest first, in one buffer reused from block to block (memory touched for the
+    first time is the slow part of a copy: 0.33 GB/s against 19 GB/s reused, on the
+    2-core VM). Returns ``{(lo, hi, side): (U, V)}`` and ``{(lo, hi): (inverse,
+    diagonal)}`` in one dict."""
+    T = source.open()
+    held: list[np.ndarray] = []
+
+    def buffer(size: int) -> np.ndarray:
+        if not held or held[0].size < size:
+            held[:] = [np.empty(size)]
+        return held[0][:size]
+
+    out = {}
+    with one_blas_thread():
+        for node in sorted(top.walk(), key=lambda n: -n.size):
+            if node.children:
+                for side in (0, 1):
+                    out[node.lo, node.hi, side] = _off_diagonal(T, order, top.lo, _split(node), side, inv_norms,
+                                                                build, buffer)
+            else:
+                idx = order[node.lo - top.lo:node.hi - top.lo]
+                out[node.lo, node.hi] = _leaf_inverse(T, idx, (node.lo, node.hi), inv_norms, buffer)
+    return out
+
+
+def _cluster_workers(executor) -> int:
+    """The workers (threads) behind ``executor``: a cluster's, else a pool's size."""
+    count = getattr(executor, "worker_threads", None)
+    if callable(count):
+        return max(1, count())
+    return max(1, getattr(executor, "_max_workers", 1))
+
+
+def _compress_on(executor, source: MappedFile, root: Node, order: np.ndarray, inv_norms: np.ndarray,
+                 build: _Build, level: int) -> None:
+    """Every block and leaf of the tree, as tasks of ``executor`` reading T from
+    ``source``, their results put in the tree's nodes.
+
+    The blocks of the top ``cut`` levels are a task each (the root's two are half the
+    work of the whole build), the subtrees below a task each, ``2^cut`` of them for at
+    least as many workers: few tasks (4 for 2 workers, 22 for 8), each a block or a subtree
+    whose blocks reuse one buffer. A task is sent T's file, the tree positions it
+    covers and the column scales, a few MB; it returns its U and V (the compressed
+    form's own arrays) or leaf inverses. The first error a task raises is raised here,
+    the other tasks cancelled; a task the cluster lost (its workers kept dying) is a
+    TransportError naming its points."""
+    from concurrent.futures import BrokenExecutor, FIRST_COMPLETED, wait
+
+    cut = max(1, math.ceil(math.log2(_cluster_workers(executor))))
+    nodes = {(n.lo, n.hi): n for n in root.walk()}
+    blocks, subtrees = [], []
+
+    def split(node: Node, depth: int) -> None:
+        if depth >= cut or not node.children:
+            subtrees.append(node)
+            return
+        blocks.extend((node, side) for side in (0, 1))
+        for c in node.children:
+            split(c, depth + 1)
+
+    split(root, 0)
+    futures = {}
+    for node, side in sorted(blocks, key=lambda b: -b[0].size):  # the largest first: workers finish together
+        futures[executor.submit(_block_task, source, order[node.lo:node.hi].copy(), _split(node), side,
+                                inv_norms, build)] = (node, side)
+    for top in sorted(subtrees, key=lambda n: -n.size):
+        futures[executor.submit(_subtree_task, source, order[top.lo:top.hi].copy(), top, inv_norms,
+                                build)] = (top, None)
+    pending, done_count = set(futures), 0
+    try:
+        while pending:
+            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in finished:
+                node, side = futures[f]
+                try:
+                    result = f.result()
+                except BrokenExecutor as exc:
+                    raise TransportError(f"compressed: the cluster lost the task of points {node.lo}:{node.hi} "
+                                         f"(tree order): {exc}") from None
+                if side is not None:
+                    node.U[side], node.V[side] = result
+                else:
+                    for key, value in result.items():
+                        target = nodes[key[:2]]
+                        if len(key) == 3:
+                            target.U[key[2]], target.V[key[2]] = value
+                        else:
+                            target.inverse, target.inv_diag = value
+                done_count += 1
+                log.log(level, "compressed: %d of %d tasks done (points %d:%d)", done_count, len(futures),
+                        node.lo, node.hi)
+    finally:
+        for f in pending:
+            f.cancel()
+
+
 @dataclass
 class CompressedOperator(UnitColumnOperator):
     """``C1 = T1 T_n^-1`` with T_n in factorised HODLR form.
@@ -482,7 +700,8 @@ class CompressedOperator(UnitColumnOperator):
 
 
 def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndarray | None = None,
-                        leaf: int | None = None, seed: int = 0, split_min: int | None = SPLIT_MIN) -> CompressedOperator:
+                        leaf: int | None = None, seed: int = 0, split_min: int | None = SPLIT_MIN,
+                        executor=None, scan: IsfScan | None = None) -> CompressedOperator:
     """Build ``C1`` from T in HODLR form (see the module docstring).
 
     Parameters
@@ -501,6 +720,15 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
         Nodes of more than ``split_min`` leaves choose, among the axes of ``points``,
         the split whose blocks have the lowest ranks (estimated from sub-blocks,
         :func:`_split_rank`); None: always the widest axis.
+    executor : concurrent.futures.Executor or None
+        A cluster's (:func:`ilt.cluster.executor_for`): the blocks are compressed and
+        the leaves inverted there, as tasks that map T's file again (it must be on
+        storage every worker sees at the same path; :func:`_compress_on`). The result
+        is the same, bit for bit, as in this process with T in memory. None, or a T
+        that is not a memory-mapped file: threads of this process.
+    scan : IsfScan or None
+        T's :func:`ilt.transport.scan_isf` when the caller has it: T was checked and
+        measured then, and is not read for it again.
 
     Raises
     ------
@@ -512,10 +740,14 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
     """
     start = time.perf_counter()
     mapped = isinstance(T, np.memmap)
-    T, norms = prepare_isf(T)
+    if scan is None or not scan.matches(T):
+        T, scan = scan_isf(T)
+    T, norms = prepare_isf(T, scan)
     m = T.shape[0]
     inv_norms = 1.0 / norms
-    peak, one_norm = _peak_and_one_norm(T, inv_norms)
+    # max |T_n| and ||T_n||_1 (the largest column sum) from the scan's figures of T
+    peak = float(np.max(scan.column_max * inv_norms))
+    one_norm = float(np.max(scan.column_abs_sums * inv_norms))
     source, power = "the noise floor", tol is not None
     if tol is None:
         tol, source = DEFAULT_TOL * peak, f"{DEFAULT_TOL:.0e} of max |T|, noise unknown"
@@ -539,77 +771,59 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
             ordering = "points ordered by a k-d tree on their positions, split where the blocks' ranks are lowest"
     else:
         order, ordering = np.arange(m), "index order (no positions given)"
-    ordered = np.all(order[1:] > order[:-1])
 
+    build = _Build(tol=float(tol), seed=seed, power=power)
     buffers = threading.local()
 
-    def block(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """``T_n[rows][:, cols]`` (float64) for sorted ``rows`` and ``cols``, read in
-        index order into this thread's buffer (valid until its next block). The buffer
-        is allocated once, for the first (largest) block: memory the process touches
-        for the first time came at 0.5 GB/s on the 2-core VM, reused memory at 5 GB/s."""
-        size = rows.size * cols.size
+    def buffer(size: int) -> np.ndarray:
+        """This thread's buffer of at least ``size`` float64 (valid until its next
+        block), allocated once, for the first (largest) block: memory the process
+        touches for the first time came at 0.5 GB/s on the 2-core VM, reused memory at
+        5 GB/s."""
         if getattr(buffers, "data", None) is None or buffers.data.size < size:
             buffers.data = np.empty(size)
-        b = buffers.data[:size].reshape(rows.size, cols.size)
-        if ordered:
-            b[...] = T[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
-        else:
-            for k, i in enumerate(rows):
-                np.take(T[i], cols, out=b[k])
-        b *= inv_norms[cols]
-        return b
+        return buffers.data[:size]
 
     def compress(node: Node, side: int) -> None:
-        """``U[side] V[side]^T`` of the node's off-diagonal block ``side`` (0: upper
-        right), from the block gathered in index order (0.13 s against 0.85 s in tree
-        order for 6144 x 6144; U's and V's rows are put back after). Each block draws
-        from its own generator, so the result does not depend on which thread ran it."""
-        mid = node.lo + node.children[0].size
-        halves = (order[node.lo:mid], order[mid:node.hi])
-        rows, cols = halves[side], halves[1 - side]
-        atol = tol * (math.sqrt(rows.size) + math.sqrt(cols.size))
-        by_row, by_col = np.argsort(rows), np.argsort(cols)
-        rng = np.random.default_rng([seed, node.lo, node.hi, side])
-        u_sorted, v_sorted = low_rank(block(rows[by_row], cols[by_col]), atol, rng, power=power)
-        node.U[side], node.V[side] = np.empty_like(u_sorted), np.empty_like(v_sorted)
-        node.U[side][by_row], node.V[side][by_col] = u_sorted, v_sorted
+        node.U[side], node.V[side] = _off_diagonal(T, order, 0, _split(node), side, inv_norms, build, buffer)
 
     def invert(node: Node) -> None:
-        idx = order[node.lo:node.hi]
-        by_row = np.argsort(idx)
-        dense = np.empty((idx.size, idx.size))
-        dense[np.ix_(by_row, by_row)] = block(idx[by_row], idx[by_row])  # copied out of the buffer
-        lu = scipy.linalg.lu_factor(dense, check_finite=False)
-        pivots = np.abs(np.diag(lu[0]))
-        if pivots.min() <= m * np.finfo(float).eps * pivots.max():
-            raise TransportError(f"compressed: the block of points {node.lo}:{node.hi} (tree order) is singular "
-                                 "to working precision; use --solver dense")
-        node.inverse = scipy.linalg.lu_solve(lu, np.eye(idx.size))
-        node.inv_diag = np.diag(node.inverse).copy()
+        node.inverse, node.inv_diag = _leaf_inverse(T, order[node.lo:node.hi], (node.lo, node.hi), inv_norms, buffer)
 
     root = _tree(0, m, leaf)
-    nodes = sorted(root.walk(), key=lambda n: -n.size)  # the largest blocks first: threads finish together
     workers = worker_threads()
     read = time.perf_counter()
     level = logging.INFO if m >= PROGRESS_M else logging.DEBUG
-    log.log(level, "compressed: T (m = %d) checked in %.1f s; compressing to tol %.2g on %d threads", m,
-            read - start, tol, workers)
-    jobs = [(lambda n=n, s=s: compress(n, s)) if n.children else (lambda n=n: invert(n))
-            for n in nodes for s in ((0, 1) if n.children else (0,))]
-    if mapped and root.children:
-        # the root's two blocks, a quarter of T each, one after the other on every
-        # core's BLAS threads (box m = 16428: 1.56 s a block on two, 2.08 s on one; the
-        # build 10.1 s against 8.2-8.9 s side by side): a memory-mapped T is not held in
-        # memory, and neither are two quarters of it: the process holds a quarter of T
-        # plus a sixteenth a thread
-        for job in jobs[:2]:
-            job()
-        jobs, buffers.data = jobs[2:], None
-    with one_blas_thread():
-        _in_parallel(jobs, workers)
-        compressed = time.perf_counter()
-        root.factorise(split=_split_levels(workers))
+    source_file = mapped_file(T) if executor is not None else None
+    if executor is not None and source_file is None:
+        log.warning("compressed: T is not a memory-mapped .npy file (it was changed in memory, e.g. by "
+                    "--regularise): its blocks are compressed here, not on the cluster")
+    if source_file is not None:
+        log.log(level, "compressed: T (m = %d) checked in %.1f s; compressing to tol %.2g on the cluster", m,
+                read - start, tol)
+        _compress_on(executor, source_file, root, order, inv_norms, build, level)
+        with one_blas_thread():
+            compressed = time.perf_counter()
+            root.factorise(split=_split_levels(workers))
+    else:
+        log.log(level, "compressed: T (m = %d) checked in %.1f s; compressing to tol %.2g on %d threads", m,
+                read - start, tol, workers)
+        nodes = sorted(root.walk(), key=lambda n: -n.size)  # the largest blocks first: threads finish together
+        jobs = [(lambda n=n, s=s: compress(n, s)) if n.children else (lambda n=n: invert(n))
+                for n in nodes for s in ((0, 1) if n.children else (0,))]
+        if mapped and root.children:
+            # the root's two blocks, a quarter of T each, one after the other on every
+            # core's BLAS threads (box m = 16428: 1.56 s a block on two, 2.08 s on one; the
+            # build 10.1 s against 8.2-8.9 s side by side): a memory-mapped T is not held in
+            # memory, and neither are two quarters of it: the process holds a quarter of T
+            # plus a sixteenth a thread
+            for job in jobs[:2]:
+                job()
+            jobs, buffers.data = jobs[2:], None
+        with one_blas_thread():
+            _in_parallel(jobs, workers)
+            compressed = time.perf_counter()
+            root.factorise(split=_split_levels(workers))
     log.log(level, "compressed: blocks compressed in %.1f s (top rank %d), factorised in %.1f s",
             compressed - read, root.rank, time.perf_counter() - compressed)
     inv_diag = np.empty(m)
@@ -676,18 +890,6 @@ def unit_column_product(T, inv_norms: np.ndarray, x: np.ndarray) -> np.ndarray:
         scaled = x[j0:j0 + 512] * inv_norms[j0:j0 + 512].reshape(-1, *([1] * (x.ndim - 1)))
         out += np.asarray(T[:, j0:j0 + 512], dtype=np.float64) @ scaled
     return out
-
-
-def _peak_and_one_norm(T, inv_norms: np.ndarray) -> tuple[float, float]:
-    """``max |T_n|`` and ``||T_n||_1`` (the largest column sum) in one pass over T, a
-    block of rows at a time."""
-    m = T.shape[0]
-    column_max, column_sum = np.zeros(m), np.zeros(m)
-    for i0 in range(0, m, 256):
-        rows = np.abs(np.asarray(T[i0:i0 + 256], dtype=np.float64))
-        np.maximum(column_max, rows.max(axis=0), out=column_max)
-        column_sum += rows.sum(axis=0)
-    return float(np.max(column_max * inv_norms)), float(np.max(column_sum * inv_norms))
 
 
 def _inverse(op: CompressedOperator) -> LinearOperator:

@@ -74,6 +74,7 @@ def load_operator(
     beams: np.ndarray | None = None,
     points: np.ndarray | None = None,
     fingerprint: str | None = None,
+    executor=None,
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
@@ -91,6 +92,8 @@ def load_operator(
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
     ``series`` or ``compressed`` figures of those solvers, build included).
     ``fingerprint``: T's :func:`~ilt.manifest.fingerprint_array` when the caller has it.
+    ``executor``: a cluster's (:func:`ilt.cluster.executor_for`), where ``compressed``
+    compresses its blocks; the other solvers ignore it.
     """
     # "-lut": the factors' layout (those of T's transpose, :class:`ilt.transport.CancellationOperator`);
     # entries ilt wrote before, the factors of T itself, are not read as such
@@ -129,7 +132,7 @@ def load_operator(
                         "tree by sample index, whose blocks can have several times the rank of an order by "
                         "pixels (972 against 143 at m = 12288); put samples.csv beside T.npy")
         points = grid_points(layout, T.shape[0], beams) if points is None else points
-        op, why = build_operator(T, name, measured, reason, points=points, scan=scan)
+        op, why = build_operator(T, name, measured, reason, points=points, scan=scan, executor=executor)
         figures = {op.solver: op.figures} if op.solver in ("series", "compressed") else {}
         return op, {**operator_diagnostics(T, op), **notes, "solver": op.solver, "solver_reason": why,
                     "rcond": op.rcond, "cached": False, **figures}
@@ -400,6 +403,7 @@ def decompose(
     noise: float | None = None,
     regularise: bool = False,
     samples_only: bool = False,
+    executor=None,
 ) -> list[dict]:
     """Decompose every input into ``out/<stem>/``; returns one summary per input.
 
@@ -414,6 +418,8 @@ def decompose(
     renamed into place on its own: a failure leaves the photos before it complete, and
     a run again skips those (a log line each) whose ``out/<stem>`` records the same
     photo, T and parameters; an ``out/<stem>`` made otherwise needs ``force``.
+    ``executor``: where the compressed solver compresses T's blocks (:func:`load_operator`);
+    no output depends on it.
     """
     photos = [read_photo(p, isf) for p in inputs]
     stems = [p.name for p in photos]
@@ -449,7 +455,7 @@ def decompose(
             log.info("%s", why)
     try:
         op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
-                                    isf.samples, fingerprint=fingerprint)
+                                    isf.samples, fingerprint=fingerprint, executor=executor)
     except TransportError as exc:
         raise TransportError(f"{isf.path}: {exc}") from None
     for w in op_diag["warnings"]:

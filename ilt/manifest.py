@@ -31,7 +31,7 @@ from ilt import __version__
 MANIFEST = "manifest.json"
 #: the run record ``ilt run`` keeps beside a stage's manifest (:mod:`ilt.stage`)
 RECORD = ".stage.json"
-#: a capture's journal (:mod:`ilt.capture.loop`): the raw data it names is never replaced
+#: a capture's journal (:mod:`ilt.capture_log`): the raw data it names is never replaced
 LOG_NAME = "capture.jsonl"
 
 

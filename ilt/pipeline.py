@@ -4,7 +4,7 @@ capture -> merge -> centroids -> build-isf -> photos -> decompose, each stage a
 directory of the workspace (:mod:`ilt.workspace`), each skipped when its run record
 matches its parameters and inputs (:mod:`ilt.stage`). The config is the rig TOML of
 ``ilt capture`` (docs/capture.md) plus optional sections for the later stages, whose
-keys are the long options of the stage commands (docs/workspace.md)::
+keys are the long options of the stage commands (:mod:`ilt.stage_options`, docs/workspace.md)::
 
     [merge]      margin = 0.05        # ilt merge --margin
     [centroids]  threshold = 0.2      # ilt centroids --threshold
@@ -30,12 +30,11 @@ import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import click
 import numpy as np
 
 from ilt.capture.config import ConfigError, RigConfig, parse_config
-from ilt.capture.loop import LOG_NAME, capture
-from ilt.manifest import StageError, atomic_path, fingerprint_file, staged_directory, write_manifest
+from ilt.capture.loop import capture
+from ilt.manifest import LOG_NAME, StageError, atomic_path, fingerprint_file, staged_directory, write_manifest
 from ilt.stage import (
     DONE,
     MISSING,
@@ -49,6 +48,7 @@ from ilt.stage import (
     stage_state,
     write_record,
 )
+from ilt.stage_options import BUILD_ISF, CENTROIDS, DECOMPOSE, MERGE, StageOption
 from ilt.workspace import STAGE_DIRS, Workspace
 
 log = logging.getLogger(__name__)
@@ -60,7 +60,7 @@ RUNTIME_KEYS = ("workers", "scheduler")
 
 @dataclass
 class RunConfig:
-    """A rig config with the options of every later stage (click parameter names)."""
+    """A rig config with the options of every later stage (their keyword names, :mod:`ilt.stage_options`)."""
 
     path: Path
     text: str
@@ -75,35 +75,29 @@ class RunConfig:
     scheduler: str | None = None
 
 
-def stage_options(command: click.Command, section: dict, allowed: tuple[str, ...], where: str) -> dict:
-    """A config section as keyword options of a stage command: keys are the command's long
-    options (``read-noise`` or ``read_noise``); unspecified ones take the command's default."""
-    by_flag = {}
-    defaults = {}
-    ctx = click.Context(command)
-    for p in command.params:
-        if isinstance(p, click.Option) and p.name in allowed:
-            defaults[p.name] = p.get_default(ctx)
-            for opt in p.opts:
-                if opt.startswith("--"):
-                    by_flag[opt[2:].replace("-", "_")] = p.name
+def stage_options(options: dict[str, StageOption], section: dict, where: str) -> dict:
+    """A config section as keyword options of a stage: keys are the stage's long options
+    (``read-noise`` or ``read_noise``), their values checked as the command line checks
+    them (ConfigError naming the file, section and key); unspecified ones take their
+    default."""
     if not isinstance(section, dict):
         raise ConfigError(f"{where}: must be a table")
-    out = dict(defaults)
+    by_key = {o.key: o.name for o in options.values()}
+    out = {o.name: o.default_value() for o in options.values()}
     for key, value in section.items():
-        name = by_flag.get(key.replace("-", "_"))
+        name = by_key.get(key.replace("-", "_"))
         if name is None:
-            raise ConfigError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(by_flag))})")
+            raise ConfigError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(by_key))})")
+        try:
+            options[name].check(value, where)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         out[name] = value
     return out
 
 
 def load_run_config(path: str | os.PathLike) -> RunConfig:
     """Read a rig TOML with its stage sections. ConfigError names the file and key."""
-    from ilt.cli import build_isf as build_isf_cli
-    from ilt.cli import centroids as centroids_cli
-    from ilt.cli import decompose as decompose_cli
-    from ilt.cli import merge as merge_cli
     from ilt.sim import ILLUMINATIONS
 
     path = Path(path)
@@ -125,17 +119,10 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
         raise ConfigError(f"{path}: [photos] sim needs the simulated camera (backend = 'sim'); use files")
     return RunConfig(
         path, text, rig,
-        merge=stage_options(merge_cli.command, raw.get("merge", {}),
-                            ("gain", "read_noise", "margin", "color", "compression", "workers"), f"{path}: [merge]"),
-        centroids=stage_options(centroids_cli.command, raw.get("centroids", {}),
-                                ("threshold", "min_snr", "max_second", "max_elongation", "large_factor",
-                                 "max_area", "saturation", "roi", "refine", "workers"), f"{path}: [centroids]"),
-        build_isf=stage_options(build_isf_cli.command, raw.get("build-isf", {}),
-                                ("sampling", "min_separation", "lit_fraction", "max_cell_radius", "fine_degree", "no_fine",
-                                 "workers"),
-                                f"{path}: [build-isf]"),
-        decompose=stage_options(decompose_cli.command, raw.get("decompose", {}), ("n_bounces", "tol", "samples_only"),
-                                f"{path}: [decompose]"),
+        merge=stage_options(MERGE, raw.get("merge", {}), f"{path}: [merge]"),
+        centroids=stage_options(CENTROIDS, raw.get("centroids", {}), f"{path}: [centroids]"),
+        build_isf=stage_options(BUILD_ISF, raw.get("build-isf", {}), f"{path}: [build-isf]"),
+        decompose=stage_options(DECOMPOSE, raw.get("decompose", {}), f"{path}: [decompose]"),
         photo_kinds=kinds,
         photo_files=tuple(path.parent / f for f in photos.get("files", ())),
         scheduler=_cluster_scheduler(raw.get("cluster", {}), f"{path}: [cluster]"),
@@ -198,8 +185,9 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     ``progress(length, label)``: a context manager yielding ``update(n)``, called with the
     beams done as each per-beam stage goes (``ilt run`` draws a bar on a terminal, a
     line every tenth in a log). ``executor``: where merge, centroids and build-isf
-    run their beams (a cluster's, :func:`ilt.cluster.executor_for`), else each
-    stage's process pool of its ``workers``.
+    run their beams and the compressed solver its blocks (a cluster's,
+    :func:`ilt.cluster.executor_for`), else each stage's process pool of its
+    ``workers`` (the solver: threads of this process).
     """
     from ilt.build_isf import build_isf
     from ilt.capture.plan import planned_beams
@@ -248,7 +236,8 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     def make_decompose():
         with staged_directory(d["decompose"], force=True) as tmp:
             decompose(load_isf(d["build-isf"]), photo_paths(ws, cfg), tmp, n_bounces=dec["n_bounces"],
-                      tol=dec["tol"], cache_dir=default_cache_dir(), force=True, samples_only=dec["samples_only"])
+                      tol=dec["tol"], cache_dir=default_cache_dir(), force=True, samples_only=dec["samples_only"],
+                      executor=executor)
             write_manifest(tmp, "decompose", fingerprinted(dec))
 
     stages = [
@@ -293,7 +282,7 @@ def capture_photos(rig: RigConfig, kinds, out: Path, options) -> Path:
     """
     from ilt.capture.camera import SimCamera, sim_sensor
     from ilt.capture.plan import make_plan
-    from ilt.hdr.bracket import FrameRecord, write_beam_manifest
+    from ilt.beam_manifest import FrameRecord, write_beam_manifest
     from ilt.hdr.stages import merge_beam
     from ilt.sim.render import render_scene
     from ilt.sim.sensor import write_dng

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.manifest import MANIFEST, read_manifest, staged_directory, write_manifest
+from ilt.capture_log import read_log
+from ilt.manifest import LOG_NAME, MANIFEST, read_manifest, staged_directory, write_manifest
 from ilt.workspace import Workspace
 
 FIG5_BOUNCES = 4
@@ -42,8 +43,6 @@ def fig5_matrices(T: np.ndarray, operator, n_max: int = FIG5_BOUNCES) -> dict:
 
 def capture_statistics(capture_dir: str | os.PathLike) -> dict | None:
     """Beams, frames, exposures skipped and scan time from a capture's manifest and log."""
-    from ilt.capture.loop import LOG_NAME, read_log
-
     capture_dir = Path(capture_dir)
     if not (capture_dir / LOG_NAME).exists():
         return None

@@ -46,12 +46,14 @@ from scipy.sparse.linalg import (
 )
 
 from ilt.transport import (
+    IsfScan,
     TransportError,
     UnitColumnOperator,
     check_photo,
     one_norm_estimate,
     prepare_isf,
     scale_rows,
+    scan_isf,
 )
 
 log = logging.getLogger(__name__)
@@ -68,10 +70,13 @@ PROBE_WARN = 10
 _DENSE_RADIUS_M = 16
 
 
-def sparse_unit_columns(T: np.ndarray, threshold: float = 0.0) -> tuple[sparse.csr_matrix, np.ndarray]:
+def sparse_unit_columns(T: np.ndarray, threshold: float = 0.0,
+                        scan: IsfScan | None = None) -> tuple[sparse.csr_matrix, np.ndarray]:
     """S: the unit-column T with entries ``|T_n[i, j]| <= threshold`` dropped, CSR float64,
-    and the column 2-norms of T (m,). Built 512 rows at a time: no m x m temporary."""
-    T, norms = prepare_isf(T)
+    and the column 2-norms of T (m,). Built 512 rows at a time: no m x m temporary.
+    ``scan``: T's :func:`~ilt.transport.scan_isf` when the caller has it (T is then
+    not checked again)."""
+    T, norms = prepare_isf(T, scan)
     inv_norms = 1.0 / norms
     rows = []
     for i0 in range(0, T.shape[0], 512):
@@ -81,9 +86,10 @@ def sparse_unit_columns(T: np.ndarray, threshold: float = 0.0) -> tuple[sparse.c
     return sparse.vstack(rows, format="csr"), norms
 
 
-def count_nonzeros(T: np.ndarray, threshold: float = 0.0) -> int:
-    """nnz of :func:`sparse_unit_columns` without building it (one pass over T)."""
-    T, norms = prepare_isf(T)
+def count_nonzeros(T: np.ndarray, threshold: float = 0.0, scan: IsfScan | None = None) -> int:
+    """nnz of :func:`sparse_unit_columns` without building it (one pass over T; two
+    without T's ``scan``)."""
+    T, norms = prepare_isf(T, scan)
     floor = threshold * norms
     return sum(int(np.count_nonzero(np.abs(T[i0:i0 + 512]) > floor)) for i0 in range(0, T.shape[0], 512))
 
@@ -240,7 +246,7 @@ class SeriesOperator(UnitColumnOperator):
 
 
 def series_operator(T: np.ndarray, threshold: float = 0.0, tol: float = SERIES_TOL,
-                    max_iterations: int | None = None) -> SeriesOperator:
+                    max_iterations: int | None = None, scan: IsfScan | None = None) -> SeriesOperator:
     """Build ``C1`` from products with the sparse unit-column T (see the module docstring).
 
     Parameters
@@ -253,6 +259,9 @@ def series_operator(T: np.ndarray, threshold: float = 0.0, tol: float = SERIES_T
         Relative residual at which every solve stops.
     max_iterations : int or None
         Per solve; None: three times what the spectral radius predicts, at least 100.
+    scan : IsfScan or None
+        T's :func:`ilt.transport.scan_isf` when the caller has it (T is not checked
+        again).
 
     Raises
     ------
@@ -262,13 +271,15 @@ def series_operator(T: np.ndarray, threshold: float = 0.0, tol: float = SERIES_T
         ``I - D^-1 S`` >= 1 (the series diverges); a solve that does not converge.
     """
     m = np.asarray(T).shape[0]
-    nnz = count_nonzeros(T, threshold)
+    if scan is None or not scan.matches(T):
+        T, scan = scan_isf(T)
+    nnz = count_nonzeros(T, threshold, scan)
     # Turan: a graph with E edges has a clique of m^2 / (m^2 - 2E) points, each needing
     # its own colour; refusing here spares building a dense S
     fewest = math.ceil(m * m / (m * m - nnz + m) - 1e-9)
     if fewest > _colour_limit(m):
         raise _dense(m, nnz, threshold, f"at least {fewest}")
-    S, norms = sparse_unit_columns(T, threshold)
+    S, norms = sparse_unit_columns(T, threshold, scan)
     d = S.diagonal()
     bad = np.flatnonzero(d <= 0)
     if bad.size:

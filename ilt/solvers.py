@@ -241,7 +241,7 @@ def choose_solver(T: np.ndarray, noise: float | None, scan: IsfScan | None = Non
         return "blocks", (f"T splits into {len(groups)} independent groups (largest {largest} of {m} points): "
                           f"cost {sum(len(g) ** 3 for g in groups) / m**3:.2g} of one dense LU")
     if m >= SERIES_MIN_M:
-        why = _series_wins(T, noise or 0.0)
+        why = _series_wins(T, noise or 0.0, scan)
         if why:
             return "series", why
     dense_bytes = 2 * 8 * m * m  # T's float64 copy and its factors
@@ -259,17 +259,17 @@ def choose_solver(T: np.ndarray, noise: float | None, scan: IsfScan | None = Non
     return "dense", f"m = {m}, one connected group, noise {'unknown' if noise is None else f'{noise:.2g}'}"
 
 
-def _series_wins(T: np.ndarray, threshold: float) -> str | None:
+def _series_wins(T: np.ndarray, threshold: float, scan: IsfScan | None = None) -> str | None:
     """Why ``series`` clearly beats ``dense`` on T (a sentence with the figures), or
     None: T must be sparse at the floor, need few colours, have a convergent series,
     and the build plus ``SERIES_USE_COLUMNS`` solves, ``2 nnz x iterations x (colours
     + columns)`` flops weighted by ``SERIES_FLOP_PENALTY``, must cost at most
     ``1 / SERIES_MARGIN`` of the dense build and solves, ``4/3 m^3 + 2 m^2 x columns``."""
     m = T.shape[0]
-    nnz = count_nonzeros(T, threshold)
+    nnz = count_nonzeros(T, threshold, scan)
     if nnz > m * m / SERIES_SPARSITY:
         return None
-    S, _ = sparse_unit_columns(T, threshold)
+    S, _ = sparse_unit_columns(T, threshold, scan)
     d = S.diagonal()
     colours = int(greedy_colouring(S).max()) + 1
     if colours > SERIES_MAX_COLOURS or np.any(d <= 0):
@@ -288,7 +288,7 @@ def _series_wins(T: np.ndarray, threshold: float) -> str | None:
 
 
 def build_operator(T: np.ndarray, solver: str = "auto", noise: float | None = None, reason: str | None = None,
-                   points: np.ndarray | None = None, scan: IsfScan | None = None):
+                   points: np.ndarray | None = None, scan: IsfScan | None = None, executor=None):
     """``C1`` with the chosen back-end. Returns ``(operator, reason)``.
 
     ``noise``: the floor (relative to T's unit columns) below which ``blocks`` and
@@ -297,7 +297,8 @@ def build_operator(T: np.ndarray, solver: str = "auto", noise: float | None = No
     itself (default: "asked for <solver>"). ``points``: (m, d) sample positions that
     ``compressed`` orders its tree by (None: index order). ``scan``: T's
     :func:`~ilt.transport.scan_isf` when the caller has it (dense, mixed and blocks
-    then do not check and measure T again).
+    then do not check and measure T again). ``executor``: where ``compressed``
+    compresses its blocks (a cluster's; :func:`ilt.compressed.compressed_operator`).
     """
     if solver not in SOLVERS:
         raise TransportError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
@@ -307,9 +308,9 @@ def build_operator(T: np.ndarray, solver: str = "auto", noise: float | None = No
     if solver == "blocks":
         return block_operator(T, threshold=noise or 0.0, scan=scan), reason
     if solver == "series":
-        return series_operator(T, threshold=noise or 0.0), reason
+        return series_operator(T, threshold=noise or 0.0, scan=scan), reason
     if solver == "compressed":
-        op = compressed_operator(T, tol=noise or None, points=points)
+        op = compressed_operator(T, tol=noise or None, points=points, executor=executor, scan=scan)
         return op, f"{reason}; {op.describe()}"
     if solver == "mixed":
         T, norms = prepare_isf(T, scan)

@@ -148,16 +148,21 @@ _SCAN_BYTES = 1 << 21
 
 @dataclass(frozen=True)
 class IsfScan:
-    """What one pass over an ISF matrix gives (:func:`scan_isf`): its column 2-norms
-    and, for :func:`ilt.solvers.estimate_noise`, the sums over its negative entries.
+    """What one pass over an ISF matrix gives (:func:`scan_isf`): its column 2-norms,
+    for :func:`ilt.solvers.estimate_noise` the sums over its negative entries, and for
+    ``compressed`` its columns' largest entries and 1-norms.
 
     norms : (m,) float64; negative_squares : (m,) float64, per column the sum of the
-    squared negative entries (of T as given); negatives : how many entries are < 0.
+    squared negative entries (of T as given); negatives : how many entries are < 0;
+    column_max, column_abs_sums : (m,) float64, per column of T as given the largest
+    |entry| and the sum of |entries|.
     """
 
     norms: np.ndarray = field(repr=False)
     negative_squares: np.ndarray = field(repr=False)
     negatives: int
+    column_max: np.ndarray = field(repr=False)
+    column_abs_sums: np.ndarray = field(repr=False)
 
     def matches(self, T: np.ndarray) -> bool:
         return self.norms.shape[0] == T.shape[0]
@@ -178,6 +183,7 @@ def scan_isf(T: np.ndarray) -> tuple[np.ndarray, IsfScan]:
     sq = np.zeros(m)
     neg_sq = np.zeros(m)
     keys = np.zeros(m)
+    column_max, abs_sums = np.zeros(m), np.zeros(m)
     negatives = 0
     step = max(1, _SCAN_BYTES // (m * T.dtype.itemsize))
     for i0 in range(0, m, step):
@@ -194,6 +200,9 @@ def scan_isf(T: np.ndarray) -> tuple[np.ndarray, IsfScan]:
         neg = np.minimum(block, 0, dtype=np.float64)
         neg_sq += np.einsum("ij,ij->j", neg, neg)
         negatives += int(np.count_nonzero(neg))
+        magnitude = np.abs(block, dtype=np.float64)
+        np.maximum(column_max, magnitude.max(axis=0), out=column_max)
+        abs_sums += magnitude.sum(axis=0)
     norms = np.sqrt(sq)
     zero = np.flatnonzero(norms == 0)
     if zero.size:
@@ -203,7 +212,8 @@ def scan_isf(T: np.ndarray) -> tuple[np.ndarray, IsfScan]:
         raise TransportError(
             f"T columns {dup[0]} and {dup[1]} are identical (two beams on the same point?): T is singular"
         )
-    return T, IsfScan(norms=norms, negative_squares=neg_sq, negatives=negatives)
+    return T, IsfScan(norms=norms, negative_squares=neg_sq, negatives=negatives, column_max=column_max,
+                      column_abs_sums=abs_sums)
 
 
 def _duplicate_columns(T: np.ndarray, keys: np.ndarray | None = None) -> tuple[int, int] | None:

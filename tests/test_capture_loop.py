@@ -13,8 +13,10 @@ from click.testing import CliRunner
 
 from ilt.capture.emulator import LaserEmulator, PTUEmulator
 from ilt.capture.errors import RigError
-from ilt.capture.loop import LOG_NAME, capture, read_log, verify_log
+from ilt.capture.loop import capture, verify_log
+from ilt.capture_log import read_log
 from ilt.cli import cli
+from ilt.manifest import LOG_NAME
 from capture_helpers import frame_hashes, pointing_of, small_config, toml_text
 
 

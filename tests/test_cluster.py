@@ -4,6 +4,7 @@ for hash, as the process pool; an unreachable scheduler and a dying worker."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import socket
@@ -235,16 +236,44 @@ def test_a_worker_killed_mid_merge_changes_nothing(data, dask_cluster, tmp_path)
 
 def test_a_beam_that_kills_every_worker_is_one_error_naming_it():
     """A task Dask gives up on (KilledWorker; here after one death) is the pool's
-    WorkerError, one line naming the chunk's beams, not Dask's exception."""
+    WorkerError, one line naming the beams of the task: its chunk's, or those of the
+    chunks batched into it (``chunks_per_task``)."""
     import dask
 
     from ilt.cluster import executor_for
     from ilt.frames import WorkerError, run_chunks
 
+    def kill_at_4(beams):
+        return os._exit(1) if 4 in beams else len(beams)
+
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}), executor_for("local", 1) as ex:
         assert list(run_chunks(lambda beams: len(beams), [([0, 1],)], ex)) == [2]
-        with pytest.raises(WorkerError, match=r"beams 4-5: the worker process running them was lost by the cluster"):
-            list(run_chunks(lambda beams: os._exit(1) if 4 in beams else len(beams), [([2, 3],), ([4, 5],)], ex))
+        ex.chunks_per_task = 1
+        with pytest.raises(WorkerError, match=r"^beams 4-5: the worker process running them was lost by the cluster"):
+            list(run_chunks(kill_at_4, [([2, 3],), ([4, 5],)], ex))
+        ex.chunks_per_task = 2
+        with pytest.raises(WorkerError, match=r"^beams 2-5: the worker process running them was lost by the cluster"):
+            list(run_chunks(kill_at_4, [([2, 3],), ([4, 5],), ([6, 7],)], ex))
+
+
+def test_chunks_batched_into_tasks_give_the_same_results_and_progress():
+    """An executor with ``chunks_per_task`` gets that many chunks in a task; the
+    results come back one per chunk, in order, and progress counts each chunk's beams,
+    as without batching."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ilt.frames import run_chunks
+
+    tasks = [(list(range(b, b + 3)), b * 10) for b in range(0, 30, 3)]
+    done = []
+
+    class Batching(ThreadPoolExecutor):
+        chunks_per_task = 4
+
+    with Batching(2) as ex:
+        batched = list(run_chunks(lambda beams, x: (beams[0], x), tasks, ex, in_flight=2, progress=done.append))
+    assert batched == [(t[0][0], t[1]) for t in tasks]
+    assert done == [3] * len(tasks)
 
 
 def test_no_scheduler_is_the_process_pool_without_importing_dask():
@@ -363,3 +392,94 @@ def test_the_scheduler_stopped_mid_merge_is_one_line_and_leaves_nothing(data, tm
     assert took < 60
     assert stdout == ""
     assert list(out.iterdir()) == [], list(out.iterdir())
+
+
+# ------------------------------------------------------------ the compressed solver's blocks on the cluster
+
+
+@pytest.fixture(scope="module")
+def kernel_T(tmp_path_factory):
+    """The cube-corner kernel ISF of m = 768 points, memory-mapped from its T.npy, and
+    the points' 3-D positions."""
+    from ilt.sim.kernel import corner_kernel_isf, corner_points
+
+    path = tmp_path_factory.mktemp("kernel") / "T.npy"
+    return corner_kernel_isf(path, 16), corner_points(16)[0]
+
+
+def test_compressed_on_a_cluster_equals_this_process(kernel_T, local_cluster):
+    """The blocks and leaves compressed as tasks on the cluster's workers, from T's
+    file, give the operator bit for bit as threads of this process do with T in
+    memory: the same ranks, T1 and solves (every block draws from its own generator
+    and runs on one BLAS thread either way)."""
+    import numpy as np
+
+    from ilt.cluster import executor_for
+    from ilt.compressed import compressed_operator
+
+    T, points = kernel_T
+    here = compressed_operator(np.array(T), points=points, leaf=32)
+    with executor_for(local_cluster) as ex:
+        there = compressed_operator(T, points=points, leaf=32, executor=ex)
+        assert ex.worker_threads() == 2
+    assert there.root.ranks_by_level() == here.root.ranks_by_level()
+    assert len(here.root.ranks_by_level()) == 5   # 768 -> 384 -> ... -> leaves of 24; 4 tasks on 2 workers
+    assert np.array_equal(there.t1_unit, here.t1_unit)
+    b = np.random.default_rng(0).standard_normal((T.shape[0], 2))
+    assert np.array_equal(there.solve(b), here.solve(b))
+    assert there.residual == here.residual and there.residual <= there.allowance
+
+
+def test_compressed_on_a_cluster_from_t_in_memory_runs_here(kernel_T, local_cluster, caplog):
+    """A T that is not a file the workers can map (changed in memory) is compressed in
+    this process, with a warning saying so, to the same operator."""
+    import numpy as np
+
+    from ilt.cluster import executor_for
+    from ilt.compressed import compressed_operator
+
+    T, points = kernel_T
+    with executor_for(local_cluster) as ex, caplog.at_level(logging.WARNING, logger="ilt.compressed"):
+        op = compressed_operator(np.array(T), points=points, leaf=32, executor=ex)
+    assert "not a memory-mapped .npy file" in caplog.text
+    assert np.array_equal(op.t1_unit, compressed_operator(T, points=points, leaf=32).t1_unit)
+
+
+def test_a_t_a_worker_cannot_map_names_the_file_and_the_worker(kernel_T, local_cluster, tmp_path, monkeypatch):
+    """A worker that does not find T's file (no shared storage there, here: a copy of T
+    removed after it was mapped) fails the build in one OSError naming the file and the
+    worker."""
+    import numpy as np
+
+    import ilt.compressed as compressed
+    from ilt.cluster import WorkerOSError, executor_for
+
+    path = tmp_path / "T.npy"
+    np.save(path, kernel_T[0])
+    T = np.load(path, mmap_mode="r")
+    found = compressed.mapped_file(T)
+    path.unlink()    # this process keeps its map; the workers look for the file
+    monkeypatch.setattr(compressed, "mapped_file", lambda array: found)
+    with executor_for(local_cluster) as ex:
+        workers = set(ex.client.scheduler_info()["workers"])
+        with pytest.raises(WorkerOSError) as info:
+            compressed.compressed_operator(T, leaf=32, executor=ex)
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and "No such file" in message
+    assert any(f"on the Dask worker {w}" in message for w in workers), message
+
+
+def test_decompose_with_a_scheduler_writes_the_same_bounces(kernel_T, local_cluster, tmp_path):
+    """`ilt decompose --solver compressed --scheduler ADDRESS` on a T.npy writes the
+    bounces and residual byte for byte as without a scheduler."""
+    import numpy as np
+
+    T, _ = kernel_T
+    photo = tmp_path / "photo.npy"
+    np.save(photo, np.random.default_rng(4).uniform(size=(T.shape[0], 2)))
+    common = ["decompose", photo, "--isf", T.filename, "--solver", "compressed", "--no-cache", "--bounces", 3]
+    run(*common, "-o", tmp_path / "here")
+    run(*common, "-o", tmp_path / "there", "--scheduler", local_cluster)
+    for name in ("bounces.npy", "residual.npy"):
+        assert fingerprint_file(tmp_path / "there" / "photo" / name) == \
+            fingerprint_file(tmp_path / "here" / "photo" / name)

@@ -304,3 +304,19 @@ def test_bench_past_the_simulator_runs_compressed_on_a_memory_map(tmp_path, monk
     assert "solve residual" in result.stderr
     bench.plot([bench.BenchRow(**r) for r in corner], tmp_path / "corner.png")  # no simulated row at all
     assert (tmp_path / "corner.png").stat().st_size > 0
+
+
+def test_mapped_file_is_found_and_checked(tmp_path):
+    """A memory-mapped T.npy (or a view of the whole of it) names its file for workers
+    to map again, the same array; an array in memory or a part of the map names none;
+    the file rewritten since (another size or modification time) is refused naming it."""
+    T = np.arange(36.0).reshape(6, 6)
+    np.save(tmp_path / "T.npy", T)
+    mapped = np.load(tmp_path / "T.npy", mmap_mode="r")
+    found = compressed.mapped_file(np.asarray(mapped))
+    assert found is not None and found.path == str(tmp_path / "T.npy")
+    assert np.array_equal(found.open(), T)
+    assert compressed.mapped_file(T) is None and compressed.mapped_file(mapped[1:, 1:]) is None
+    np.save(tmp_path / "T.npy", np.zeros((7, 7)))
+    with pytest.raises(OSError, match="T.npy: not the T.npy the build started from"):
+        found.open()

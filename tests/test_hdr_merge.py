@@ -135,7 +135,8 @@ def test_capture_directory_to_hdr_directory(tmp_path):
 
 
 def test_merge_hashes_the_frames_it_reads_against_the_capture_log(tmp_path):
-    from ilt.capture.loop import LOG_NAME, CaptureLog
+    from ilt.capture_log import CaptureLog
+    from ilt.manifest import LOG_NAME
     from ilt.hdr.stages import merge_capture
     from ilt.manifest import fingerprint_file
 

@@ -127,3 +127,25 @@ def test_quiet_and_no_progress_bars_off_a_terminal(workspace, tmp_path):
     logged = CliRunner().invoke(cli, spots)          # stderr is not a terminal here
     assert logged.exit_code == 0 and "\r" not in logged.stderr and "[" not in logged.stderr, logged.stderr
     assert CliRunner().invoke(cli, ["-q", *spots, "--force"]).stderr == ""
+
+
+@pytest.mark.parametrize("section, value, message", [
+    ("merge", "margin = 0.9", r"\[merge\]: margin = 0.9: 0.9 is not in the range 0<=x<=0.5"),
+    ("merge", "color = 1", r"\[merge\]: color = 1: must be true or false"),
+    ("merge", 'compression = "b44"', r"\[merge\]: compression = 'b44': 'b44' is not one of"),
+    ("build-isf", "fine-degree = 1.5", r"\[build-isf\]: fine_degree = 1.5: must be a whole number"),
+    ("centroids", "workers = 0", r"\[centroids\]: workers = 0: 0 is not in the range x>=1"),
+    ("decompose", "bounces = true", r"\[decompose\]: bounces = True: must be a number"),
+])
+def test_stage_values_are_checked_as_the_command_line_checks_them(tmp_path, section, value, message):
+    """A value the stage's command would refuse is refused in the config, naming the
+    file, section and key, before anything runs; one it accepts is kept as written."""
+    from ilt.capture.config import ConfigError
+    from ilt.pipeline import load_run_config
+
+    (tmp_path / "rig.toml").write_text(run_rig_toml(16, 8, "", f"[{section}]\n{value}\n"))
+    with pytest.raises(ConfigError, match=message):
+        load_run_config(tmp_path / "rig.toml")
+    (tmp_path / "ok.toml").write_text(run_rig_toml(16, 8, "", "[merge]\nmargin = 0\n"))
+    margin = load_run_config(tmp_path / "ok.toml").merge["margin"]
+    assert margin == 0 and isinstance(margin, int)

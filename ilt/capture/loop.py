@@ -29,11 +29,12 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
+from ilt.beam_manifest import BEAM_GLOB, FrameRecord, beam_name, write_beam_manifest
+from ilt.capture_log import CaptureLog, read_log
 from ilt.manifest import LOG_NAME, fingerprint_file, write_manifest
 
 from .adaptive import AdaptiveBracket
@@ -51,51 +52,7 @@ ATTIC = ".incomplete"
 EMULATOR = "emulator"
 
 
-def beam_name(j: int) -> str:
-    return f"beam-{j:05d}"
-
-
 # ---------------------------------------------------------------------- the log
-
-
-class CaptureLog:
-    """Append-only JSONL: each record is one ``write`` of one line, then fsync."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self._fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-
-    def append(self, event: str, **fields) -> dict:
-        record = {"event": event, "time": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), **fields}
-        os.write(self._fd, (json.dumps(record, default=_plain) + "\n").encode())
-        os.fsync(self._fd)
-        return record
-
-    def close(self) -> None:
-        os.close(self._fd)
-
-
-def read_log(path: str | os.PathLike) -> list[dict]:
-    """The log's records; a last line cut short by a crash is dropped with a warning."""
-    records = []
-    lines = Path(path).read_text().splitlines()
-    for k, line in enumerate(lines):
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            if k == len(lines) - 1:
-                log.warning("%s: last line cut short (crash while writing it); ignored", path)
-            else:
-                raise ConfigError(f"{path}:{k + 1}: not a JSON record; the log is damaged") from None
-    return records
-
-
-def _plain(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"cannot log {type(obj).__name__}")
 
 
 def verify_log(directory: str | os.PathLike) -> list[str]:
@@ -118,7 +75,7 @@ def verify_log(directory: str | os.PathLike) -> list[str]:
         if not any(p.exists() and fingerprint_file(p) == r["sha256"] for p in candidates):
             problems.append(f"{r['file']}: logged frame missing or changed")
         latest[r["file"]] = r
-    for beam_dir in sorted(directory.glob("beam-[0-9]*")):
+    for beam_dir in sorted(directory.glob(BEAM_GLOB)):
         if (beam_dir / "manifest.json").exists():
             for f in beam_dir.iterdir():
                 rel = f"{beam_dir.name}/{f.name}"
@@ -336,8 +293,6 @@ def _beam(cfg: RigConfig, rig: Rig, directory: Path, journal: CaptureLog, j: int
     journal.append("move", beam=j, requested={"pan": pan, "tilt": tilt}, readback={"pan": got[0], "tilt": got[1]})
     time.sleep(cfg.ptu.settle)
     position = {"pan": pan, "tilt": tilt, "readback_pan": got[0], "readback_tilt": got[1]}
-    from ilt.hdr.bracket import FrameRecord, write_beam_manifest
-
     frames: list[FrameRecord] = []
     rig.laser.on()
     try:
@@ -382,7 +337,6 @@ def _bracket(cfg, rig, beam_dir, journal, j, position, frames) -> list[Exposure]
 
 def _frame(rig: Rig, beam_dir: Path, journal: CaptureLog, j: int, stem: str, exposure: Exposure, position: dict):
     """Shoot one frame into ``beam_dir/stem.<suffix>``: temporary name, fsync, link, log."""
-    from ilt.hdr.bracket import FrameRecord
     from ilt.hdr.exposure import exif_facts, read_exif
 
     camera = rig.camera

@@ -12,30 +12,32 @@ from ilt.cli.options import (
     progress_bar,
     require_dir,
     scheduler_option,
+    stage_option,
     stage_output_option,
     workers_option,
     workspace_option,
 )
+from ilt.stage_options import BUILD_ISF
 
 
 @click.command("build-isf")
 @click.argument("hdr_dir", required=False, type=click.Path(exists=True, file_okay=False))
 @click.argument("spots_dir", required=False, type=click.Path(exists=True, file_okay=False))
 @stage_output_option
-@click.option("--sampling", type=click.Choice(["cell", "point"]), default="cell", show_default=True,
+@stage_option(BUILD_ISF["sampling"], show_default=True,
               help="cell: integrate each frame over every spot's cell; point: read the centroid pixel (the paper).")
-@click.option("--min-separation", type=click.FloatRange(min=0), default=2.0, show_default=True,
+@stage_option(BUILD_ISF["min_separation"], show_default=True,
               help="Drop a spot closer than this many pixels to a kept one.")
-@click.option("--lit-fraction", type=click.FloatRange(min=0), default=1e-3, show_default=True,
+@stage_option(BUILD_ISF["lit_fraction"], show_default=True,
               help="Pixels whose frame sum is below this fraction of its median at the spots are outside every cell.")
-@click.option("--max-cell-radius", type=click.FloatRange(min=0, min_open=True), default=None,
+@stage_option(BUILD_ISF["max_cell_radius"],
               help="Cells end this many pixels from their spot (default: 2 x the median spot spacing).")
-@click.option("--fine-degree", type=click.IntRange(0, 2), default=1, show_default=True,
+@stage_option(BUILD_ISF["fine_degree"], show_default=True,
               help="Also build fine/, the operator of full-resolution bounce images (cell sampling): the "
                    "indirect light of every beam frame as a polynomial of this degree inside each cell, "
                    "fitted in the same pass (0: flat cells; 2 stores 5 m^2 float32 against 2 m^2 for 1).")
-@click.option("--no-fine", is_flag=True, help="Do not build fine/: 'ilt decompose' then splits photos at the "
-                                               "m samples only.")
+@stage_option(BUILD_ISF["no_fine"], help="Do not build fine/: 'ilt decompose' then splits photos at the "
+                                        "m samples only.")
 @workers_option
 @scheduler_option
 @workspace_option

@@ -11,10 +11,12 @@ from ilt.cli.options import (
     progress_bar,
     require_dir,
     scheduler_option,
+    stage_option,
     stage_output_option,
     workers_option,
     workspace_option,
 )
+from ilt.stage_options import CENTROIDS
 
 
 @click.command("centroids")
@@ -23,21 +25,18 @@ from ilt.cli.options import (
 @click.option("--dark", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Dark frame (EXR on the frames' grid) to subtract from HDR frames (default: a robust local "
                    "background level; a capture directory's own dark frames are always used).")
-@click.option("--threshold", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=0.2,
-              show_default=True, help="Spot threshold, fraction of the peak above background.")
-@click.option("--min-snr", type=click.FloatRange(min=0), default=10.0, show_default=True,
+@stage_option(CENTROIDS["threshold"], show_default=True, help="Spot threshold, fraction of the peak above background.")
+@stage_option(CENTROIDS["min_snr"], show_default=True,
               help="Flag 'none' when the peak is below this many noise sigmas.")
-@click.option("--max-second", type=click.FloatRange(min=0), default=0.05, show_default=True,
+@stage_option(CENTROIDS["max_second"], show_default=True,
               help="Flag 'multiple' when a second spot has this fraction of the first's flux.")
-@click.option("--max-elongation", type=click.FloatRange(min=1), default=2.0, show_default=True,
-              help="Flag 'elongated' above this axis ratio.")
-@click.option("--large-factor", type=click.FloatRange(min=1), default=4.0, show_default=True,
+@stage_option(CENTROIDS["max_elongation"], show_default=True, help="Flag 'elongated' above this axis ratio.")
+@stage_option(CENTROIDS["large_factor"], show_default=True,
               help="Flag 'large' above this multiple of the median spot area.")
-@click.option("--max-area", type=click.FloatRange(min=1), default=None, help="Flag 'large' above this many pixels.")
-@click.option("--saturation", type=float, default=None,
-              help="Sensor clipping level in frame units (default: detect a flat top).")
-@click.option("--roi", default=None, help="Region of interest x0,y0,x1,y1 in full-frame sensor pixels.")
-@click.option("--refine", is_flag=True, help="Refine each centroid with a 2D Gaussian fit.")
+@stage_option(CENTROIDS["max_area"], help="Flag 'large' above this many pixels.")
+@stage_option(CENTROIDS["saturation"], help="Sensor clipping level in frame units (default: detect a flat top).")
+@stage_option(CENTROIDS["roi"], help="Region of interest x0,y0,x1,y1 in full-frame sensor pixels.")
+@stage_option(CENTROIDS["refine"], help="Refine each centroid with a 2D Gaussian fit.")
 @workers_option
 @scheduler_option
 @workspace_option
@@ -81,7 +80,7 @@ def _count(hdr_dir) -> int:
     """Beams to expect, for the progress bar: EXR frames, else beam directories of a capture."""
     from pathlib import Path
 
-    from ilt.hdr.bracket import BEAM_GLOB
+    from ilt.beam_manifest import BEAM_GLOB
 
     path = Path(hdr_dir)
     return sum(1 for p in path.iterdir() if p.suffix.lower() == ".exr") or \

@@ -11,9 +11,12 @@ from ilt.cli.options import (
     emit,
     force_option,
     json_option,
+    scheduler_option_for,
+    stage_option,
     stage_output_option,
     workspace_option,
 )
+from ilt.stage_options import DECOMPOSE
 
 
 @click.command("decompose")
@@ -22,7 +25,7 @@ from ilt.cli.options import (
               help="ISF directory (T.npy, samples.csv, manifest.json) or a T .npy file (default WORKSPACE/isf).")
 @stage_output_option
 @bounces_option
-@click.option("--tol", type=click.FloatRange(min=0), default=0.0, show_default=True,
+@stage_option(DECOMPOSE["tol"], show_default=True,
               help="Stop once ||Ln|| / ||L|| < TOL for every input column (0: compute all N).")
 @click.option("--cache-dir", type=click.Path(file_okay=False), default=None,
               help="Where factorised operators are kept between runs "
@@ -42,14 +45,16 @@ from ilt.cli.options import (
               help="Denoise T before inverting it: smooth its indirect part along pixels and beams, edge-aware "
                    "(neighbours whose light differs by more than the noise are not averaged), kept when the "
                    "change is within the noise (discrepancy principle); needs the noise level and a full grid plan.")
-@click.option("--samples-only", is_flag=True,
+@stage_option(DECOMPOSE["samples_only"],
               help="Split the photo at the m samples only: skip the full-resolution bounce images "
                    "(the ISF's fine/ operator).")
+@scheduler_option_for("the compressed solver's blocks (T.npy memory-mapped on storage every worker sees; "
+                      "the other solvers, the photos and the outputs stay on this machine)")
 @workspace_option
 @force_option
 @json_option
 def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solver, noise, regularise, samples_only,
-            workspace, force, as_json):
+            scheduler, workspace, force, as_json):
     """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
 
     INPUT is an EXR photo on the grid of the beam frames (integrated over the ISF's
@@ -64,12 +69,15 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
     merge' marked saturated (<stem>.saturated.png beside the photo) are left out of
     the full-resolution images and counted.
     """
+    from ilt.cluster import executor_for
     from ilt.decompose import decompose, default_cache_dir
     from ilt.isf import load_isf
 
     isf_path, output = workspace.resolve(isf_path, "build-isf"), workspace.resolve(output, "decompose")
     isf = load_isf(isf_path, mmap=True)  # T is never held twice: solvers copy or read it as they need
     cache = None if no_cache else (Path(cache_dir) if cache_dir else default_cache_dir())
-    summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache, force=force,
-                          solver=solver, noise=noise, regularise=regularise, samples_only=samples_only)
+    with executor_for(scheduler) as executor:
+        summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache,
+                              force=force, solver=solver, noise=noise, regularise=regularise,
+                              samples_only=samples_only, executor=executor)
     emit(as_json, summaries, [s["output"] for s in summaries])

@@ -11,9 +11,11 @@ from ilt.cli.options import (
     progress_bar,
     require_dir,
     scheduler_option,
+    stage_option,
     workers_option,
     workspace_option,
 )
+from ilt.stage_options import MERGE
 
 
 @click.command("merge")
@@ -25,16 +27,15 @@ from ilt.cli.options import (
 @click.option("--dark", type=click.Path(dir_okay=False), default=None, help="Dark frame for --bracket.")
 @click.option("--response", "response_path", type=click.Path(dir_okay=False), default=None,
               help="response.json from ilt calibrate (default: linear, nominal exposures).")
-@click.option("--gain", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
-              help="Sensor gain in electrons per DN (noise model of the weights).")
-@click.option("--read-noise", type=click.FloatRange(min=0), default=2.0, show_default=True,
+@stage_option(MERGE["gain"], show_default=True, help="Sensor gain in electrons per DN (noise model of the weights).")
+@stage_option(MERGE["read_noise"], show_default=True,
               help="Read noise in DN per photosite (noise model of the weights).")
-@click.option("--margin", type=click.FloatRange(0, 0.5), default=0.03, show_default=True,
+@stage_option(MERGE["margin"], show_default=True,
               help="Samples within this fraction of the white level count as saturated.")
-@click.option("--color", is_flag=True, help="Merge linear camera RGB (R, G, B channels) instead of green.")
-@click.option("--compression", type=click.Choice(["zip:1", "zip", "zip:9", "zips", "piz"]), default="zip:1",
-              show_default=True, help="Lossless EXR compression; zip:1 is deflate at its fastest level "
-              "(noisy float data compresses little more at higher levels).")
+@stage_option(MERGE["color"], help="Merge linear camera RGB (R, G, B channels) instead of green.")
+@stage_option(MERGE["compression"], show_default=True,
+              help="Lossless EXR compression; zip:1 is deflate at its fastest level "
+                   "(noisy float data compresses little more at higher levels).")
 @workers_option
 @scheduler_option
 @workspace_option

@@ -5,12 +5,21 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
 
 import click
+
+from ilt.stage_options import BOUNCES, MAX_BOUNCES, WORKERS, StageOption
+
+
+def stage_option(option: StageOption, *short: str, **kwargs):
+    """The click option of a stage option (:mod:`ilt.stage_options`): its long flag,
+    parameter name, default and type from there; ``short`` flags, help and the rest here."""
+    kind = {"is_flag": True} if isinstance(option.default, bool) else {"type": option.type}
+    return click.option(*short, f"--{option.flag}", option.name, default=option.default, **kind, **kwargs)
+
 
 force_option = click.option("--force", is_flag=True, help="Replace outputs that already exist.")
 json_option = click.option(
@@ -20,28 +29,33 @@ output_option = click.option(
     "-o", "--output", "output", required=True, type=click.Path(file_okay=False),
     help="Directory to write (created; must not exist unless --force).",
 )
-#: more bounces than any scene keeps light for (a bounce keeps at most the albedo's fraction:
-#: 0.99^1000 = 4e-5); without a bound a typo such as 100000000 computes for days
-MAX_BOUNCES = 1000
-bounces_option = click.option(
-    "--bounces", "n_bounces", type=click.IntRange(1, MAX_BOUNCES), default=8, show_default=True,
+bounces_option = stage_option(
+    BOUNCES, show_default=True,
     help=f"Number of bounce images N to compute (at most {MAX_BOUNCES}: after that many bounces at most "
          "albedo^1000 of the light is left, 4e-5 even at albedo 0.99).",
 )
-workers_option = click.option(
-    "-j", "--workers", type=click.IntRange(min=1), default=lambda: os.cpu_count() or 1,
-    show_default="all cores",
+workers_option = stage_option(
+    WORKERS, "-j", show_default="all cores",
     help="Worker processes, one core each (1: in this process). No output depends on it.",
 )
-#: ``--scheduler`` of the per-beam stages (ilt.cluster); a runtime option like --workers
-scheduler_option = click.option(
-    "--scheduler", "scheduler", default=None, metavar="ADDRESS",
-    help="Run the per-beam work on a Dask cluster (pip install 'ilt[cluster]'; docs/cluster.md): "
-         "'local' starts a LocalCluster of --workers single-threaded processes on this machine; "
-         "tcp://HOST:8786 uses the workers of a running 'dask scheduler' (every worker must see the "
-         "workspace at the same path). Default: $DASK_SCHEDULER_ADDRESS when set, else a process pool "
-         "of --workers here. No output depends on it; an unreachable scheduler is an error (10 s).",
-)
+
+
+def scheduler_option_for(work: str):
+    """``--scheduler`` (ilt.cluster), a runtime option like --workers; ``work``: what
+    runs on the cluster (the help names it)."""
+    return click.option(
+        "--scheduler", "scheduler", default=None, metavar="ADDRESS",
+        help=f"Run {work} on a Dask cluster (pip install 'ilt[cluster]'; docs/cluster.md): "
+             "'local' starts a LocalCluster of single-threaded processes on this machine (--workers of them "
+             "where the command has it, else one a core); tcp://HOST:8786 uses the workers of a running "
+             "'dask scheduler' (every worker must see the files at the same path). Default: "
+             "$DASK_SCHEDULER_ADDRESS when set, else this machine. No output depends on it; an unreachable "
+             "scheduler is an error (10 s).",
+    )
+
+
+#: ``--scheduler`` of the per-beam stages
+scheduler_option = scheduler_option_for("the per-beam work")
 
 
 class MissingInput(ValueError):

@@ -1,4 +1,4 @@
-"""The capture directory layout: one directory per beam, each a bracket of RAW frames.
+"""Reading the capture directory layout: one directory per beam, each a bracket of RAW frames.
 
 ```
 capture/
@@ -11,6 +11,7 @@ capture/
 Each frame record is ``{"file": "frame-00.dng", "exposure_time": "1/8000", "f_number": "16"}``:
 times in seconds and f-numbers as JSON numbers or exact rational text ("1/125", "1.2").
 Either fact may be missing (null); it is then read from the frame's EXIF. See docs/hdr.md.
+The beam directories' names and manifests are written by :mod:`ilt.beam_manifest`.
 """
 
 from __future__ import annotations
@@ -18,28 +19,18 @@ from __future__ import annotations
 import json
 import logging
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
-from ilt.manifest import MANIFEST, write_json
-
-BEAM_GLOB = "beam-[0-9]*"
+from ilt.beam_manifest import BEAM_GLOB, FrameRecord, beam_name
+from ilt.capture_log import CaptureLogError, read_log
+from ilt.manifest import LOG_NAME, MANIFEST
 
 log = logging.getLogger(__name__)
 
 
 class CaptureError(ValueError):
     """A capture directory or beam manifest that does not follow the layout."""
-
-
-@dataclass(frozen=True)
-class FrameRecord:
-    """One frame of a beam: file name in the beam directory and its nominal exposure facts
-    (text as written, e.g. "1/125" s and "1.2"; None when the manifest leaves it to EXIF)."""
-
-    file: str
-    exposure_time: str | None = None
-    f_number: str | None = None
 
 
 @dataclass(frozen=True)
@@ -52,19 +43,6 @@ class Bracket:
 
     def path(self, record: FrameRecord) -> Path:
         return self.beam_dir / record.file
-
-
-def write_beam_manifest(beam_dir: str | os.PathLike, frames: list[FrameRecord],
-                        dark: FrameRecord | None = None, extra: dict | None = None) -> Path:
-    """Write ``beam_dir/manifest.json`` for the frames (atomically)."""
-    beam_dir = Path(beam_dir)
-    data = {
-        "beam": _beam_index(beam_dir),
-        "frames": [asdict(f) for f in frames],
-        "dark": asdict(dark) if dark else None,
-    }
-    data.update(extra or {})
-    return write_json(beam_dir / MANIFEST, data)
 
 
 def read_beam(beam_dir: str | os.PathLike) -> Bracket:
@@ -127,15 +105,12 @@ def logged_fingerprints(capture_dir: str | os.PathLike) -> dict[str, dict[str, s
     forgets the records before it (those files moved to ``.incomplete/``). A damaged log
     gives nothing (with a warning): the frames are then hashed as they are read.
     """
-    from ilt.capture.config import ConfigError
-    from ilt.capture.loop import LOG_NAME, beam_name, read_log
-
     path = Path(capture_dir) / LOG_NAME
     if not path.is_file():
         return {}
     try:
         records = read_log(path)
-    except ConfigError as exc:
+    except CaptureLogError as exc:
         log.warning("%s; every frame will be hashed", exc)
         return {}
     beams: dict[str, dict[str, str]] = {}
@@ -154,8 +129,3 @@ def _record(item: dict) -> FrameRecord:
         return None if v is None else str(v)
 
     return FrameRecord(str(item["file"]), text(item.get("exposure_time")), text(item.get("f_number")))
-
-
-def _beam_index(beam_dir: Path) -> int | None:
-    tail = beam_dir.name.rpartition("-")[2]
-    return int(tail) if tail.isdigit() else None

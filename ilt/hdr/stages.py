@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.hdr.bracket import Bracket, FrameRecord, list_beams, logged_fingerprints, read_beam
+from ilt.beam_manifest import FrameRecord
+from ilt.hdr.bracket import Bracket, list_beams, logged_fingerprints, read_beam
 from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
 from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
 from ilt.hdr.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green

@@ -256,7 +256,7 @@ def write_bracket(
     exposure is added as ``dark.dng``. The beam's ``manifest.json`` lists the nominal
     facts, as a camera reports them.
     """
-    from ilt.hdr.bracket import FrameRecord, write_beam_manifest
+    from ilt.beam_manifest import FrameRecord, write_beam_manifest
 
     beam_dir = Path(beam_dir)
     beam_dir.mkdir(parents=True, exist_ok=True)

@@ -125,6 +125,9 @@ def load_operator(
         T, scan = scan_isf(T)
     name, reason = choose_solver(T, measured, scan) if solver == "auto" else (solver, f"asked for {solver}")
     notes.update(fingerprint="sha256:" + key.split("-")[0])
+    if executor is not None and name != "compressed":
+        log.info("the %s solver runs in this process: the cluster (--scheduler) compresses T's blocks for the "
+                 "compressed solver only", name)
     if name != "dense":
         log.info("building the %s operator (m = %d): %s", name, T.shape[0], reason)
         if points is None and name == "compressed" and (layout is None or min(layout) == 1):

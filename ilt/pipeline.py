@@ -235,7 +235,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
 
     def make_decompose():
         with staged_directory(d["decompose"], force=True) as tmp:
-            decompose(load_isf(d["build-isf"]), photo_paths(ws, cfg), tmp, n_bounces=dec["n_bounces"],
+            decompose(load_isf(d["build-isf"], mmap=True), photo_paths(ws, cfg), tmp, n_bounces=dec["n_bounces"],
                       tol=dec["tol"], cache_dir=default_cache_dir(), force=True, samples_only=dec["samples_only"],
                       executor=executor)
             write_manifest(tmp, "decompose", fingerprinted(dec))

@@ -308,14 +308,19 @@ def test_bench_past_the_simulator_runs_compressed_on_a_memory_map(tmp_path, monk
 
 def test_mapped_file_is_found_and_checked(tmp_path):
     """A memory-mapped T.npy (or a view of the whole of it) names its file for workers
-    to map again, the same array; an array in memory or a part of the map names none;
+    to read, the same entries; an array in memory or a part of the map names none;
     the file rewritten since (another size or modification time) is refused naming it."""
     T = np.arange(36.0).reshape(6, 6)
     np.save(tmp_path / "T.npy", T)
     mapped = np.load(tmp_path / "T.npy", mmap_mode="r")
     found = compressed.mapped_file(np.asarray(mapped))
     assert found is not None and found.path == str(tmp_path / "T.npy")
-    assert np.array_equal(found.open(), T)
+    rows, cols = np.array([0, 2, 3, 5]), np.array([1, 2, 3])
+    out, scattered = np.empty((4, 3)), np.empty((4, 2))
+    with found.open() as read:
+        read.gather(rows, cols, out)    # the rows' spans straight into the block
+        read.gather(rows, cols[[0, 2]], scattered)
+    assert np.array_equal(out, T[np.ix_(rows, cols)]) and np.array_equal(scattered, T[np.ix_(rows, [1, 3])])
     assert compressed.mapped_file(T) is None and compressed.mapped_file(mapped[1:, 1:]) is None
     np.save(tmp_path / "T.npy", np.zeros((7, 7)))
     with pytest.raises(OSError, match="T.npy: not the T.npy the build started from"):

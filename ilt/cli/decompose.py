@@ -48,8 +48,8 @@ from ilt.stage_options import DECOMPOSE
 @stage_option(DECOMPOSE["samples_only"],
               help="Split the photo at the m samples only: skip the full-resolution bounce images "
                    "(the ISF's fine/ operator).")
-@scheduler_option_for("the compressed solver's blocks (T.npy memory-mapped on storage every worker sees; "
-                      "the other solvers, the photos and the outputs stay on this machine)")
+@scheduler_option_for("the compression of T's blocks, with the compressed solver (T.npy on storage every "
+                      "worker sees; the other solvers, the photos and the outputs stay on this machine)")
 @workspace_option
 @force_option
 @json_option

@@ -846,8 +846,9 @@ def compressed_operator(T: np.ndarray, tol: float | None = None, points: np.ndar
     level = logging.INFO if m >= PROGRESS_M else logging.DEBUG
     source_file = mapped_file(T) if executor is not None else None
     if executor is not None and source_file is None:
-        log.warning("compressed: T is not a memory-mapped .npy file (it was changed in memory, e.g. by "
-                    "--regularise): its blocks are compressed here, not on the cluster")
+        log.warning("compressed: T is not a memory-mapped .npy file in C order (it was changed in memory, "
+                    "e.g. by --regularise, or its file is in Fortran order): its blocks are compressed here, "
+                    "not on the cluster")
     if source_file is not None:
         log.log(level, "compressed: T (m = %d) checked in %.1f s; compressing to tol %.2g on the cluster", m,
                 read - start, tol)

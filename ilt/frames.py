@@ -338,10 +338,10 @@ def run_chunks(function: Callable, tasks: Iterable[tuple], executor: Executor | 
 
     Each task's first item is a sequence of beams; ``progress(len(beams))`` is called
     as each finishes. With ``executor`` None everything runs here. A worker process
-    that dies raises :class:`WorkerError` naming the beams it was running. An executor
-    with a ``chunks_per_task`` (a cluster's, :class:`ilt.cluster.ClusterExecutor`)
-    gets that many consecutive tasks in each of its tasks (:func:`run_batch`): each
-    runs as it would alone, so the results are the same, with fewer round trips.
+    that dies raises :class:`WorkerError` naming the beams it was running. Each
+    submission is :func:`run_batch` of ``chunks_per_task`` consecutive tasks (an
+    executor's attribute, a cluster's 4, :class:`ilt.cluster.ClusterExecutor`; else 1):
+    each runs as it would alone, so the results are the same, with fewer round trips.
     """
     if executor is None:
         for task in tasks:
@@ -361,8 +361,7 @@ def run_chunks(function: Callable, tasks: Iterable[tuple], executor: Executor | 
                     break
                 beams = [b for task in batch for b in task[0]]
                 try:
-                    future = (executor.submit(function, *batch[0]) if per_task == 1 else
-                              executor.submit(run_batch, function, batch))
+                    future = executor.submit(run_batch, function, batch)
                 except BrokenExecutor:  # a worker died since the last result: the pool takes no more
                     raise WorkerError(_lost_beams(executor, pending)) from None
                 pending.append((beams, [len(task[0]) for task in batch], future))
@@ -374,7 +373,7 @@ def run_chunks(function: Callable, tasks: Iterable[tuple], executor: Executor | 
             except BrokenExecutor:
                 raise WorkerError(_lost_beams(executor, pending)) from None
             pending.popleft()
-            for size, result in zip(sizes, [results] if per_task == 1 else results):
+            for size, result in zip(sizes, results):
                 yield result
                 if progress:
                     progress(size)

@@ -200,6 +200,8 @@ def scan_isf(T: np.ndarray) -> tuple[np.ndarray, IsfScan]:
         neg = np.minimum(block, 0, dtype=np.float64)
         neg_sq += np.einsum("ij,ij->j", neg, neg)
         negatives += int(np.count_nonzero(neg))
+        # for compressed's tolerance and condition estimate: 0.7-0.8 s more on a scan of
+        # 3.4 s at m = 33075 (medians of 3), against the whole pass of its own it needed
         magnitude = np.abs(block, dtype=np.float64)
         np.maximum(column_max, magnitude.max(axis=0), out=column_max)
         abs_sums += magnitude.sum(axis=0)

@@ -13,10 +13,10 @@ import argparse
 import numpy as np
 import scipy.linalg
 
-from ilt.bench import median_time
+from ilt.evaluate.bench import median_time
 from ilt.sim import make_scene
-from ilt.solvers import build_operator
-from ilt.transport import bounce_images
+from ilt.transport.solvers import build_operator
+from ilt.transport.operators import bounce_images
 
 
 def objects(m: int, k: int, seed: int = 0):

@@ -1,5 +1,5 @@
 """Benchmark of the per-beam stages and the compressed solver on a Dask cluster
-(ilt.cluster) against ilt's own process pool and threads, on this machine.
+(ilt.parallel.cluster) against ilt's own process pool and threads, on this machine.
 
     python benchmarks/bench_cluster.py            # m = 1024 beams; compressed at m = 33075
     python benchmarks/bench_cluster.py --quick    # m = 128 / 256, compressed at 3072: a minute or so
@@ -86,8 +86,8 @@ def main() -> None:
 
     from bench_isf import synthetic_frames
 
-    from ilt.build_isf import centroids_and_isf
-    from ilt.cluster import executor_for
+    from ilt.isf.build import centroids_and_isf
+    from ilt.parallel.cluster import executor_for
     from ilt.hdr.stages import MergeOptions, merge_capture
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -142,7 +142,7 @@ def kernel_isf(directory: Path, n: int):
 
 def compressed_against_one_process(ex, T, points, repeat: int) -> None:
     """compressed_operator on T by this process's threads and by the cluster, in turn."""
-    from ilt.compressed import compressed_operator
+    from ilt.transport.compressed import compressed_operator
 
     m, built = T.shape[0], {}
 

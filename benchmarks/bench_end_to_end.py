@@ -5,7 +5,7 @@
 For each scene, the rig config of `ilt demo` (or its --quick size): `ilt run` on the
 simulated rig (DNG brackets -> merge -> centroids -> build-isf -> photos -> decompose),
 and the same stages on the renderer's noise-free frames of the same beams and photos
-(:mod:`ilt.end_to_end`). Prints, per photo and bounce 1-4, the relative error of each
+(:mod:`ilt.evaluate.end_to_end`). Prints, per photo and bounce 1-4, the relative error of each
 against the renderer's truth and their ratio rig / ideal, as a markdown table
 (docs/accuracy.md, "End to end").
 """
@@ -16,10 +16,10 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from ilt.demo import RIG_BEAMS, rig_config
-from ilt.end_to_end import compare, ideal_workspace
-from ilt.pipeline import load_run_config, run_pipeline
-from ilt.workspace import Workspace
+from ilt.workspace.demo import RIG_BEAMS, rig_config
+from ilt.evaluate.end_to_end import compare, ideal_workspace
+from ilt.workspace.pipeline import load_run_config, run_pipeline
+from ilt.io.workspace_dirs import Workspace
 
 
 def main() -> None:

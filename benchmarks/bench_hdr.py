@@ -194,9 +194,9 @@ def make_capture(cap: Path, beams: int, width: int, height: int, distinct: int, 
     fingerprints in capture.jsonl as ``ilt capture`` logs them."""
     import os
 
-    from ilt.capture_log import CaptureLog
-    from ilt.manifest import LOG_NAME
-    from ilt.manifest import fingerprint_file
+    from ilt.capture.log import CaptureLog
+    from ilt.io.manifest import LOG_NAME
+    from ilt.io.manifest import fingerprint_file
 
     sensor = SensorModel(width=width, height=height)
     distinct = min(distinct, beams)
@@ -225,7 +225,7 @@ def throughput(tmp: Path, beams: int, width: int, height: int, repeat: int, rng,
     links to them (a full-size bracket takes seconds to simulate and 180 MB of disk).
     The page cache then holds the distinct files, so decoding and merging both read
     from memory: the ratio is of compute, as on a capture disk fast enough to stream."""
-    from ilt.manifest import LOG_NAME
+    from ilt.io.manifest import LOG_NAME
 
     cap = tmp / "cap"
     make_capture(cap, beams, width, height, distinct or beams, rng)

@@ -33,8 +33,8 @@ import numpy as np
 def synthetic_frames(directory: Path, m: int, width: int, height: int, seed: int = 0) -> None:
     from scipy.special import ndtr
 
-    from ilt.imageio import write_exr
-    from ilt.manifest import write_json
+    from ilt.io.exr import write_exr
+    from ilt.io.manifest import write_json
 
     rng = np.random.default_rng(seed)
     cols = int(np.ceil(np.sqrt(m * width / height)))
@@ -54,8 +54,8 @@ def synthetic_frames(directory: Path, m: int, width: int, height: int, seed: int
 
 
 def throughput(m: int, width: int, height: int, workers: int, repeats: int, profile: bool = False) -> None:
-    from ilt.build_isf import centroids_and_isf
-    from ilt.frames import open_hdr_directory, read_frame
+    from ilt.isf.build import centroids_and_isf
+    from ilt.io.frames import open_hdr_directory, read_frame
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -101,12 +101,12 @@ def throughput(m: int, width: int, height: int, workers: int, repeats: int, prof
 
 def sampling_errors(scene_name: str, beams: int, spot: float, workdir: Path, n_bounces: int = 4) -> dict:
     """{(sampling, kind): (n_bounces,) relative errors} for one rendered scene."""
-    from ilt.build_isf import build_isf, sample_like
-    from ilt.decompose import decompose
-    from ilt.isf import load_isf
+    from ilt.isf.build import build_isf, sample_like
+    from ilt.decompose.stage import decompose
+    from ilt.isf.directory import load_isf
     from ilt.sim.render import render_scene
-    from ilt.simulate import write_frames
-    from ilt.spots import run_centroids
+    from ilt.workspace.simulate import write_frames
+    from ilt.spots.stage import run_centroids
 
     rs = render_scene(scene_name, beams=beams, spot=spot)
     sim = write_frames(rs, workdir / "sim", {"scene": scene_name, "beams": beams})

@@ -83,8 +83,8 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from ilt.imageio import read_exr
-from ilt.isf import load_isf
+from ilt.io.exr import read_exr
+from ilt.isf.directory import load_isf
 
 KINDS = ("flashlight", "room", "projector")
 BOUNCES = (1, 2, 3, 4)

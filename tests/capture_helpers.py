@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ilt.capture.config import parse_config
-from ilt.manifest import fingerprint_file
+from ilt.io.manifest import fingerprint_file
 
 SMALL = {
     "ptu": {"port": "emulator", "settle": 0.0, "timeout": 0.5, "emulator_speed": 20000},

@@ -11,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from click.testing import CliRunner
 
-from ilt.build_isf import build_isf, sample_like
-from ilt.cells import integrate, mosaic, voronoi_cells
+from ilt.isf.build import build_isf, sample_like
+from ilt.isf.cells import integrate, mosaic, voronoi_cells
 from ilt.cli import cli
-from ilt.imageio import read_exr, write_exr
-from ilt.isf import load_isf
+from ilt.io.exr import read_exr, write_exr
+from ilt.isf.directory import load_isf
 
 
 def run(*args, ok=True):
@@ -109,9 +109,9 @@ def _whole_array_reference(isf_dir, hdr_dir, degree):
     """T and the fine coefficients the way build-isf made them before it streamed them
     (issue 15): every column in memory, T = raw / scales on the whole, and the fine
     coefficients finished on whole (K, m, m) float64 arrays (the code of that build)."""
-    from ilt.build_isf import _column_chunk
-    from ilt.frames import open_hdr_directory
-    from ilt.fullres import MIN_EXPLAINED, CellGeometry, basis_terms
+    from ilt.isf.build import _column_chunk
+    from ilt.io.frames import open_hdr_directory
+    from ilt.isf.fine import MIN_EXPLAINED, CellGeometry, basis_terms
 
     hdr = open_hdr_directory(hdr_dir)
     plan = json.loads((isf_dir / "manifest.json").read_text())["beams"]
@@ -221,9 +221,9 @@ def test_bad_input_fails_cleanly(runs, tmp_path, case):
 
 
 def test_pixel_mapping_from_headers_else_the_manifest_else_full_resolution(tmp_path):
-    from ilt.frames import FULL_RESOLUTION, FrameError, PixelMapping, open_hdr_directory
-    from ilt.imageio import write_exr
-    from ilt.manifest import write_json
+    from ilt.io.frames import FULL_RESOLUTION, FrameError, PixelMapping, open_hdr_directory
+    from ilt.io.exr import write_exr
+    from ilt.io.manifest import write_json
 
     half = PixelMapping((0.5, 0.5), 2.0)
     for name in ("plain", "manifest", "headers", "mixed"):
@@ -245,7 +245,7 @@ def test_centroids_and_isf_decode_once_and_agree_with_the_two_stages(runs, tmp_p
     """The combined run (every EXR decoded once, frames kept as scratch) writes the same
     spots and the same T, bit for bit, as `ilt centroids` then `ilt build-isf`, in a
     pool of 2 workers as in one, and removes its scratch frames."""
-    from ilt.build_isf import centroids_and_isf
+    from ilt.isf.build import centroids_and_isf
 
     root, sim = runs[16]
     for workers in (1, 2):
@@ -260,7 +260,7 @@ def test_centroids_and_isf_decode_once_and_agree_with_the_two_stages(runs, tmp_p
 @given(n=st.integers(0, 400), size=st.integers(1, 40))
 @settings(max_examples=200, deadline=None)
 def test_chunks_cover_every_beam_once_in_order_with_small_ones_last(n, size):
-    from ilt.frames import chunks
+    from ilt.parallel.chunks import chunks
 
     parts = chunks(list(range(n)), size)
     assert [b for part in parts for b in part] == list(range(n))
@@ -278,12 +278,12 @@ def test_centroids_and_isf_when_the_disk_fills_while_keeping_frames(runs, tmp_pa
     import errno
     import logging
 
-    import ilt.frames
-    from ilt.build_isf import centroids_and_isf
+    import ilt.io.frames
+    from ilt.isf.build import centroids_and_isf
 
     root, sim = runs[16]
     frames = sorted(p.name for p in (sim / "hdr").iterdir())
-    real_keep = ilt.frames.FrameScratch.keep
+    real_keep = ilt.io.frames.FrameScratch.keep
     recorded = []
 
     def keep(self, fd, beam, frame):  # beams 10 and after fail half-way
@@ -292,14 +292,14 @@ def test_centroids_and_isf_when_the_disk_fills_while_keeping_frames(runs, tmp_pa
             raise OSError(errno.ENOSPC, "No space left on device")
         real_keep(self, fd, beam, frame)
 
-    real_kept = ilt.frames.FrameScratch.kept
+    real_kept = ilt.io.frames.FrameScratch.kept
 
     def kept(self):
         recorded.append(real_kept(self))
         return recorded[-1]
 
-    monkeypatch.setattr(ilt.frames.FrameScratch, "keep", keep)
-    monkeypatch.setattr(ilt.frames.FrameScratch, "kept", kept)
+    monkeypatch.setattr(ilt.io.frames.FrameScratch, "keep", keep)
+    monkeypatch.setattr(ilt.io.frames.FrameScratch, "kept", kept)
     with caplog.at_level(logging.WARNING, logger="ilt.spots"):
         centroids_and_isf(sim / "hdr", tmp_path / "spots", tmp_path / "isf", workers=1)
     assert any("No space left on device" in r.message and "beam 10" in r.message
@@ -314,7 +314,7 @@ def test_centroids_and_isf_when_the_disk_fills_while_keeping_frames(runs, tmp_pa
 def test_frame_scratch_keeps_frames_bit_for_bit_and_trusts_only_its_record(tmp_path):
     """Frames written in any order read back identical; only recorded beams of the
     recorded frame size count as kept; a frame of another size is refused."""
-    from ilt.frames import FrameError, FrameScratch
+    from ilt.io.frames import FrameError, FrameScratch
 
     rng = np.random.default_rng(4)
     frames = {b: rng.normal(size=(5, 7)).astype(np.float32) for b in (3, 0, 6)}

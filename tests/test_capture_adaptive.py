@@ -44,7 +44,7 @@ def test_rule_stops_at_once_for_a_dim_scene():
 def test_box_scene_saves_30_percent_with_equal_hdr(tmp_path):
     from ilt.hdr.bracket import list_beams, read_beam
     from ilt.hdr.merge import NoiseModel, merge_bracket
-    from ilt.hdr.raw import read_green
+    from ilt.io.raw import read_green
 
     base = small_config(
         camera={"scene": "box", "px_per_beam": 8.0, "radiance_scale": 3.0e8},

@@ -14,9 +14,9 @@ from click.testing import CliRunner
 from ilt.capture.emulator import LaserEmulator, PTUEmulator
 from ilt.capture.errors import RigError
 from ilt.capture.loop import capture, verify_log
-from ilt.capture_log import read_log
+from ilt.capture.log import read_log
 from ilt.cli import cli
-from ilt.manifest import LOG_NAME
+from ilt.io.manifest import LOG_NAME
 from capture_helpers import frame_hashes, pointing_of, small_config, toml_text
 
 
@@ -39,7 +39,7 @@ def reference(tmp_path_factory):
 
 def test_capture_layout_is_what_merge_reads(reference):
     from ilt.hdr.bracket import list_beams, read_beam
-    from ilt.hdr.raw import read_green
+    from ilt.io.raw import read_green
 
     out, summary = reference
     assert summary["beams"] == 8 and summary["frames"] == 8 * 4

@@ -9,8 +9,8 @@ import pytest
 from click.testing import CliRunner
 
 from ilt.cli import cli
-from ilt.evaluate import relative_errors
-from ilt.imageio import read_exr, write_exr
+from ilt.evaluate.errors import relative_errors
+from ilt.io.exr import read_exr, write_exr
 
 
 def run(*args, ok=True):
@@ -70,7 +70,7 @@ def test_decompose_npy_matches_truth_and_reuses_operators(isf_dir, tmp_path):
 def test_decompose_reads_t_through_a_read_only_memory_map(isf_dir):
     """`ilt decompose` memory-maps T.npy: nothing holds it twice, pages are read as a
     solver needs them (and the kernel may drop them again), nothing can write to it."""
-    from ilt.isf import load_isf
+    from ilt.isf.directory import load_isf
 
     mapped, loaded = load_isf(isf_dir, mmap=True).T, load_isf(isf_dir).T
     assert isinstance(mapped, np.memmap) and not mapped.flags.writeable

@@ -1,4 +1,4 @@
-"""The per-beam stages on a Dask cluster (ilt.cluster, --scheduler): the same files, hash
+"""The per-beam stages on a Dask cluster (ilt.parallel.cluster, --scheduler): the same files, hash
 for hash, as the process pool; an unreachable scheduler and a dying worker."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ distributed = pytest.importorskip("distributed",
                                   reason="dask.distributed is not installed (pip install 'ilt[cluster]')")
 
 from ilt.cli import cli  # noqa: E402
-from ilt.manifest import fingerprint_file  # noqa: E402
+from ilt.io.manifest import fingerprint_file
 
 #: 16 beams of 8 x 8 pixels, a 5-frame bracket, no photos (the per-beam stages only)
 RIG = run_rig_toml(16, 8, "radiance_scale = 1.0e8", '[photos]\nsim = []\n')
@@ -96,7 +96,7 @@ def test_merge_centroids_build_isf_on_a_local_cluster_equal_the_pool(data, local
 def test_scheduler_from_the_environment(data, local_cluster, tmp_path, monkeypatch):
     """$DASK_SCHEDULER_ADDRESS is the default scheduler."""
     monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", local_cluster)
-    from ilt.cluster import ClusterExecutor, executor_for
+    from ilt.parallel.cluster import ClusterExecutor, executor_for
 
     with executor_for(None) as ex:
         assert isinstance(ex, ClusterExecutor)
@@ -109,9 +109,9 @@ def test_scheduler_from_the_environment(data, local_cluster, tmp_path, monkeypat
 
 
 def test_unreachable_scheduler_is_one_line_and_writes_nothing(data, tmp_path, monkeypatch):
-    import ilt.cluster
+    import ilt.parallel.cluster
 
-    monkeypatch.setattr(ilt.cluster, "CONNECT_TIMEOUT", 1.0)
+    monkeypatch.setattr(ilt.parallel.cluster, "CONNECT_TIMEOUT", 1.0)
     address = f"tcp://127.0.0.1:{free_port()}"   # closed: nothing listens there
     result = run("merge", data / "capture", "-o", tmp_path / "hdr", "--scheduler", address, ok=False)
     assert result.exit_code == 1
@@ -127,7 +127,7 @@ def test_unreachable_scheduler_is_one_line_and_writes_nothing(data, tmp_path, mo
 
 def test_cluster_table_is_checked(tmp_path):
     from ilt.capture.config import ConfigError
-    from ilt.pipeline import load_run_config
+    from ilt.workspace.pipeline import load_run_config
 
     (tmp_path / "a.toml").write_text(RIG + '\n[cluster]\nscheduler = "tcp://head:8786"\n')
     assert load_run_config(tmp_path / "a.toml").scheduler == "tcp://head:8786"
@@ -203,9 +203,9 @@ def test_ilt_run_on_a_dask_scheduler_equals_the_pool(dask_cluster, tmp_path, mon
 def test_a_worker_killed_mid_merge_changes_nothing(data, dask_cluster, tmp_path):
     """SIGKILL to a worker running beams after the first beams finished: Dask runs its
     beams again on the other, and the HDR directory is the pool's, file for file."""
-    from ilt.cluster import executor_for
+    from ilt.parallel.cluster import executor_for
     from ilt.hdr.stages import merge_capture
-    from ilt.pipeline import merge_options
+    from ilt.workspace.pipeline import merge_options
 
     address, procs = dask_cluster
     killed: list[str] = []
@@ -240,8 +240,8 @@ def test_a_beam_that_kills_every_worker_is_one_error_naming_it():
     chunks batched into it (``chunks_per_task``)."""
     import dask
 
-    from ilt.cluster import executor_for
-    from ilt.frames import WorkerError, run_chunks
+    from ilt.parallel.cluster import executor_for
+    from ilt.parallel.chunks import WorkerError, run_chunks
 
     def kill_at_4(beams):
         return os._exit(1) if 4 in beams else len(beams)
@@ -262,7 +262,7 @@ def test_chunks_batched_into_tasks_give_the_same_results_and_progress():
     as without batching."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from ilt.frames import run_chunks
+    from ilt.parallel.chunks import run_chunks
 
     tasks = [(list(range(b, b + 3)), b * 10) for b in range(0, 30, 3)]
     done = []
@@ -277,7 +277,7 @@ def test_chunks_batched_into_tasks_give_the_same_results_and_progress():
 
 
 def test_no_scheduler_is_the_process_pool_without_importing_dask():
-    code = ("import sys\nfrom ilt.cluster import executor_for\nwith executor_for(None) as ex:\n    assert ex is None\n"
+    code = ("import sys\nfrom ilt.parallel.cluster import executor_for\nwith executor_for(None) as ex:\n    assert ex is None\n"
             "assert 'distributed' not in sys.modules and 'dask' not in sys.modules, 'dask imported'\n")
     env = {k: v for k, v in os.environ.items() if k != "DASK_SCHEDULER_ADDRESS"}
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=60)
@@ -288,10 +288,10 @@ def test_no_scheduler_is_the_process_pool_without_importing_dask():
 
 def test_an_input_a_worker_cannot_open_names_the_path_and_the_worker(local_cluster, tmp_path):
     """An OSError of a task (here: a path that does not exist where the worker runs)
-    comes back through run_chunks as an OSError (ilt.cluster.WorkerOSError), one line
+    comes back through run_chunks as an OSError (ilt.parallel.cluster.WorkerOSError), one line
     naming the path and the worker's address, not as a WorkerError or a traceback."""
-    from ilt.cluster import WorkerOSError, executor_for
-    from ilt.frames import run_chunks
+    from ilt.parallel.cluster import WorkerOSError, executor_for
+    from ilt.parallel.chunks import run_chunks
 
     missing = tmp_path / "nowhere" / "beam-00003.exr"
     with executor_for(local_cluster) as ex:
@@ -414,8 +414,8 @@ def test_compressed_on_a_cluster_equals_this_process(kernel_T, local_cluster):
     and runs on one BLAS thread either way)."""
     import numpy as np
 
-    from ilt.cluster import executor_for
-    from ilt.compressed import compressed_operator
+    from ilt.parallel.cluster import executor_for
+    from ilt.transport.compressed import compressed_operator
 
     T, points = kernel_T
     here = compressed_operator(np.array(T), points=points, leaf=32)
@@ -435,11 +435,11 @@ def test_compressed_on_a_cluster_from_t_in_memory_runs_here(kernel_T, local_clus
     this process, with a warning saying so, to the same operator."""
     import numpy as np
 
-    from ilt.cluster import executor_for
-    from ilt.compressed import compressed_operator
+    from ilt.parallel.cluster import executor_for
+    from ilt.transport.compressed import compressed_operator
 
     T, points = kernel_T
-    with executor_for(local_cluster) as ex, caplog.at_level(logging.WARNING, logger="ilt.compressed"):
+    with executor_for(local_cluster) as ex, caplog.at_level(logging.WARNING, logger="ilt.transport.compressed"):
         op = compressed_operator(np.array(T), points=points, leaf=32, executor=ex)
     assert "not a memory-mapped .npy file" in caplog.text
     assert np.array_equal(op.t1_unit, compressed_operator(T, points=points, leaf=32).t1_unit)
@@ -451,8 +451,8 @@ def test_a_t_a_worker_cannot_map_names_the_file_and_the_worker(kernel_T, local_c
     worker."""
     import numpy as np
 
-    import ilt.compressed as compressed
-    from ilt.cluster import WorkerOSError, executor_for
+    import ilt.transport.compressed as compressed
+    from ilt.parallel.cluster import WorkerOSError, executor_for
 
     path = tmp_path / "T.npy"
     np.save(path, kernel_T[0])

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ilt import compressed, solvers
-from ilt.bench import bench_case, scene_batch
+from ilt.transport import compressed, solvers
+from ilt.evaluate.bench import bench_case, scene_batch
 from ilt.cli import cli
-from ilt.compressed import compressed_operator, grid_points, spatial_order
-from ilt.decompose import load_operator
-from ilt.evaluate import relative_errors
+from ilt.transport.compressed import compressed_operator, grid_points, spatial_order
+from ilt.decompose.stage import load_operator
+from ilt.evaluate.errors import relative_errors
 from ilt.sim import make_scene
-from ilt.solvers import build_operator, choose_solver
-from ilt.transport import TransportError, bounce_images, cancellation_operator
+from ilt.transport.solvers import build_operator, choose_solver
+from ilt.transport.operators import TransportError, bounce_images, cancellation_operator
 
 
 def box(beams=432, noise=0.0, seed=1):
@@ -280,7 +280,7 @@ def test_bench_past_the_simulator_runs_compressed_on_a_memory_map(tmp_path, monk
     """Sizes past the simulator: compressed alone, on the cube-corner kernel written to
     a memory-mapped T.npy; the others say why they did not run; the solve is checked
     against T itself, and the resident memory (T's mapped pages included) is measured."""
-    from ilt import bench
+    from ilt.evaluate import bench
 
     monkeypatch.setattr(bench, "SIMULATED_MAX_M", 200)
     monkeypatch.setattr(compressed, "LEAF", 32)

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from capture_helpers import run_rig_toml
 
-from ilt.end_to_end import compare, green_grid, ideal_workspace
-from ilt.pipeline import load_run_config, run_pipeline
+from ilt.evaluate.end_to_end import compare, green_grid, ideal_workspace
+from ilt.workspace.pipeline import load_run_config, run_pipeline
 from ilt.sim.sensor import SensorModel
-from ilt.workspace import Workspace
+from ilt.io.workspace_dirs import Workspace
 
 RIG = run_rig_toml(16, 16, "spot = 0.1", """\
 [photos]

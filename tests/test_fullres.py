@@ -1,4 +1,4 @@
-"""Full-resolution bounce images (ilt.fullres) against the simulator's per-pixel truth."""
+"""Full-resolution bounce images (ilt.isf.fine) against the simulator's per-pixel truth."""
 
 import json
 import shutil
@@ -8,11 +8,11 @@ import OpenImageIO as oiio
 import pytest
 from click.testing import CliRunner
 
-from ilt.cells import integrate
+from ilt.isf.cells import integrate
 from ilt.cli import cli
-from ilt.fullres import CellGeometry, basis_terms, fit_operator
-from ilt.imageio import read_exr, write_exr
-from ilt.isf import load_isf
+from ilt.isf.fine import CellGeometry, basis_terms, fit_operator
+from ilt.io.exr import read_exr, write_exr
+from ilt.isf.directory import load_isf
 
 KINDS = ("flashlight", "room", "projector")
 

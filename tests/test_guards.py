@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from test_run import workspace  # noqa: F401  (the small simulated workspace, built once)
 
 from ilt.cli import cli
-from ilt.manifest import fingerprint_file
+from ilt.io.manifest import fingerprint_file
 
 
 def invoke(*args):
@@ -113,8 +113,8 @@ def test_demo_into_a_foreign_directory_is_refused(tmp_path):
 
 
 def test_demo_claims_an_empty_directory_and_its_own_again(tmp_path):
-    from ilt.demo import claim_output
-    from ilt.manifest import read_manifest
+    from ilt.workspace.demo import claim_output
+    from ilt.io.manifest import read_manifest
 
     out = tmp_path / "demo"
     out.mkdir()
@@ -164,7 +164,7 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next_merge_a_live_ones_kep
 def test_an_operator_cache_entry_is_rebuilt_when_unreadable_also_one_without_manifest(tmp_path, monkeypatch):
     """Entries of ilt's own cache are replaced when decompose rebuilds them, also those
     an older ilt wrote without a manifest.json."""
-    from ilt.decompose import load_operator
+    from ilt.decompose.stage import load_operator
 
     monkeypatch.setenv("ILT_CACHE_DIR", str(tmp_path))
     T = np.eye(6) + 0.1

@@ -8,8 +8,8 @@ from click.testing import CliRunner
 
 from ilt.cli import cli
 from ilt.hdr.merge import MergeError, NoiseModel, cramer_rao_bound, merge_bracket
-from ilt.hdr.raw import read_green, to_full_frame
-from ilt.imageio import read_exr
+from ilt.io.raw import read_green, to_full_frame
+from ilt.io.exr import read_exr
 from ilt.sim.sensor import PAPER_BRACKET, SensorModel, expose, expected_dn, spot_radiance, write_bracket, write_dng
 
 SENSOR = SensorModel(width=96, height=64)
@@ -135,10 +135,10 @@ def test_capture_directory_to_hdr_directory(tmp_path):
 
 
 def test_merge_hashes_the_frames_it_reads_against_the_capture_log(tmp_path):
-    from ilt.capture_log import CaptureLog
-    from ilt.manifest import LOG_NAME
+    from ilt.capture.log import CaptureLog
+    from ilt.io.manifest import LOG_NAME
     from ilt.hdr.stages import merge_capture
-    from ilt.manifest import fingerprint_file
+    from ilt.io.manifest import fingerprint_file
 
     rng = np.random.default_rng(5)
     X = spot_radiance((32, 48), (20, 16), 5e8, 2.0, floor=500)

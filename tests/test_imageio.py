@@ -1,4 +1,4 @@
-"""ilt.imageio: float32 EXR round trips, metadata, refusals and atomic writes."""
+"""ilt.io.exr: float32 EXR round trips, metadata, refusals and atomic writes."""
 
 import os
 
@@ -6,7 +6,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from ilt.imageio import ImageError, read_exr, write_exr
+from ilt.io.exr import ImageError, read_exr, write_exr
 
 
 def _random_image(shape, seed=0):

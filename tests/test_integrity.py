@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from test_run import SMALL_RIG
 
 from ilt.cli import cli
-from ilt.manifest import fingerprint_file
+from ilt.io.manifest import fingerprint_file
 
 
 def invoke(*args):
@@ -135,24 +135,24 @@ def test_paths_from_a_config_or_manifest_stay_inside(tmp_path, ws):
 
 
 def test_multi_photo_decompose_completes_what_a_failure_left(ws, tmp_path, monkeypatch):
-    import ilt.decompose
+    import ilt.decompose.stage
 
     photos = [ws / "photos" / "flashlight.exr", tmp_path / "second.exr"]
     shutil.copyfile(photos[0], photos[1])
     out = tmp_path / "out"
     args = ["decompose", *photos, "-w", ws, "-o", out, "--no-cache", "--samples-only"]
-    write = ilt.decompose.write_decomposition
+    write = ilt.decompose.stage.write_decomposition
 
     def disk_full_on_the_second(directory, photo, *rest):
         if photo.name == "second":
             raise OSError(28, "No space left on device")
         return write(directory, photo, *rest)
 
-    monkeypatch.setattr(ilt.decompose, "write_decomposition", disk_full_on_the_second)
+    monkeypatch.setattr(ilt.decompose.stage, "write_decomposition", disk_full_on_the_second)
     assert invoke(*args).exit_code == 1
     assert (out / "flashlight" / "manifest.json").exists() and not (out / "second").exists()
     first = {p.name: fingerprint_file(p) for p in (out / "flashlight").iterdir() if p.is_file()}
-    monkeypatch.setattr(ilt.decompose, "write_decomposition", write)
+    monkeypatch.setattr(ilt.decompose.stage, "write_decomposition", write)
     result = run(*args)  # no --force: the complete one is kept, the missing one made
     assert "already decomposed" in result.stderr
     assert (out / "second" / "manifest.json").exists()

@@ -7,9 +7,10 @@ structural fact that a planar facet cannot light itself (zero self-blocks of C2 
 import numpy as np
 import pytest
 
-from ilt.evaluate import bounce_isf_errors, relative_errors
+from ilt.evaluate.errors import bounce_isf_errors, relative_errors
 from ilt.sim import ILLUMINATIONS, make_scene
-from ilt.transport import bounce_images, cancellation_operator, decomposition_diagnostics
+from ilt.transport.operators import bounce_images, cancellation_operator
+from ilt.transport.diagnostics import decomposition_diagnostics
 
 
 @pytest.fixture(scope="module", params=[("m", 128), ("box", 192)])

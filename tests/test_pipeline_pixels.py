@@ -13,13 +13,14 @@ from capture_helpers import toml_text
 from click.testing import CliRunner
 
 from ilt.cli import cli
-from ilt.frames import PixelMapping, open_hdr_directory, read_frame
+from ilt.io.frames import PixelMapping, open_hdr_directory, read_frame
 from ilt.hdr.bracket import list_beams, read_beam
-from ilt.hdr.raw import read_green
-from ilt.imageio import read_exr
-from ilt.isf import load_isf
+from ilt.io.raw import read_green
+from ilt.io.exr import read_exr
+from ilt.isf.directory import load_isf
 from ilt.sim.render import render_scene
-from ilt.spots import read_shortest_exposure, read_spots
+from ilt.spots.stage import read_shortest_exposure
+from ilt.spots.table import read_spots
 
 PX_PER_BEAM, ROWS, BEAMS = 32.0, 32, 8
 BRACKET = {"shutter": ["1/15", "1/250", "1/4000"], "aperture": 1.2,

@@ -1,4 +1,4 @@
-"""ilt.layout and ilt.preview: vectors as images, log scaling and the PNG figures."""
+"""ilt.isf.layout and ilt.io.preview: vectors as images, log scaling and the PNG figures."""
 
 import subprocess
 import sys
@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ilt.layout import sample_frame, splat, vector_to_image
-from ilt.preview import (
+from ilt.isf.layout import sample_frame, splat, vector_to_image
+from ilt.io.preview import (
     IMAGE_SIZE,
     PANEL_SIZE,
     _bounce_canvas,
@@ -241,7 +241,7 @@ def test_negative_and_non_finite_values_show_black():
 
 
 def test_preview_does_not_import_matplotlib():
-    code = "import sys, ilt.preview; print(sorted(m for m in sys.modules if m.startswith('matplotlib')))"
+    code = "import sys, ilt.io.preview; print(sorted(m for m in sys.modules if m.startswith('matplotlib')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
 

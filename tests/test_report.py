@@ -13,10 +13,10 @@ from click.testing import CliRunner
 from test_run import workspace  # noqa: F401  (the small simulated workspace, built once)
 
 from ilt.cli import cli
-from ilt.imageio import write_exr
-from ilt.preview import bounce_panel
-from ilt.report import write_report
-from ilt.workspace import Workspace
+from ilt.io.exr import write_exr
+from ilt.io.preview import bounce_panel
+from ilt.report.page import write_report
+from ilt.io.workspace_dirs import Workspace
 
 CHECK = """<script>
 window.addEventListener("load", () => {

@@ -15,8 +15,8 @@ from click.testing import CliRunner
 
 from ilt.cli import cli
 from ilt.capture.plan import planned_beams
-from ilt.isf import load_isf, write_isf
-from ilt.layout import vector_to_image
+from ilt.isf.directory import load_isf, write_isf
+from ilt.isf.layout import vector_to_image
 from ilt.sim import memory
 
 ROOT = Path(__file__).resolve().parent.parent

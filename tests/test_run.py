@@ -7,8 +7,8 @@ from capture_helpers import run_rig_toml
 from click.testing import CliRunner
 
 from ilt.cli import cli
-from ilt.pipeline import load_run_config, workspace_status
-from ilt.workspace import Workspace
+from ilt.workspace.pipeline import load_run_config, workspace_status
+from ilt.io.workspace_dirs import Workspace
 
 SMALL_RIG = run_rig_toml(8, 8, "radiance_scale = 1.0e8", """\
 [centroids]
@@ -58,8 +58,8 @@ def test_build_isf_reads_the_frames_centroids_kept_and_leaves_none(workspace, tm
     is the one build-isf makes from the EXR files, and the scratch copies are gone."""
     import numpy as np
 
-    from ilt.build_isf import build_isf
-    from ilt.pipeline import SCRATCH_DIR
+    from ilt.isf.build import build_isf
+    from ilt.workspace.pipeline import SCRATCH_DIR
 
     assert not (workspace / SCRATCH_DIR).exists()
     build_isf(workspace / "hdr", workspace / "spots", tmp_path / "isf", workers=1)
@@ -141,7 +141,7 @@ def test_stage_values_are_checked_as_the_command_line_checks_them(tmp_path, sect
     """A value the stage's command would refuse is refused in the config, naming the
     file, section and key, before anything runs; one it accepts is kept as written."""
     from ilt.capture.config import ConfigError
-    from ilt.pipeline import load_run_config
+    from ilt.workspace.pipeline import load_run_config
 
     (tmp_path / "rig.toml").write_text(run_rig_toml(16, 8, "", f"[{section}]\n{value}\n"))
     with pytest.raises(ConfigError, match=message):

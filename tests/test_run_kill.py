@@ -29,8 +29,8 @@ from test_run import SMALL_RIG
 
 from ilt.capture.loop import verify_log
 from ilt.cli import cli
-from ilt.frames import read_frame
-from ilt.manifest import fingerprint_file, read_manifest
+from ilt.io.frames import read_frame
+from ilt.io.manifest import fingerprint_file, read_manifest
 
 #: the kills: (a path appearing in the workspace, glob; seconds after it) during the capture,
 #: then (a stage starting, as logged; the fraction of its uninterrupted run time after it)

@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from ilt import solvers
-from ilt.bench import bench_case
+from ilt.transport import solvers
+from ilt.evaluate.bench import bench_case
 from ilt.cli import cli
-from ilt.decompose import load_operator
-from ilt.evaluate import relative_errors
-from ilt.series import iterations_needed, series_operator
+from ilt.decompose.stage import load_operator
+from ilt.evaluate.errors import relative_errors
+from ilt.transport.series import iterations_needed, series_operator
 from ilt.sim import make_scene
-from ilt.solvers import build_operator, choose_solver
-from ilt.transport import TransportError, bounce_images, cancellation_operator
+from ilt.transport.solvers import build_operator, choose_solver
+from ilt.transport.operators import TransportError, bounce_images, cancellation_operator
 
 
 def local_scene(m, rho=0.5, seed=0):
@@ -129,7 +129,7 @@ def test_slow_series_warns_with_the_iterations_it_needs(caplog):
     A, t1, _ = sparse_scene("pairs")
     A[0, 1] = A[1, 0] = 0.995
     T = np.linalg.solve(np.eye(64) - A, np.diag(t1))
-    with caplog.at_level(logging.WARNING, logger="ilt.series"):
+    with caplog.at_level(logging.WARNING, logger="ilt.transport.series"):
         op = series_operator(T)
     assert op.jacobi_radius == pytest.approx(0.995, abs=1e-3)  # ARPACK's tolerance
     predicted = iterations_needed(op.jacobi_radius)

@@ -154,13 +154,13 @@ def test_a_worker_that_dies_is_one_line_naming_its_beams(hdr, tmp_path):
     hook.mkdir()
     (hook / "sitecustomize.py").write_text(
         "import os\n"
-        "import ilt.spots\n"
-        "real = ilt.spots._centroid_chunk\n"
+        "import ilt.spots.stage\n"
+        "real = ilt.spots.stage._centroid_chunk\n"
         "def _centroid_chunk(beams, *args, **kwargs):\n"
         "    if 40 in beams:\n"
         "        os._exit(3)\n"
         "    return real(beams, *args, **kwargs)\n"
-        "ilt.spots._centroid_chunk = _centroid_chunk\n")
+        "ilt.spots.stage._centroid_chunk = _centroid_chunk\n")
     env = {**os.environ, "PYTHONPATH": str(hook)}
     proc = start("centroids", hdr[0], "-o", tmp_path / "spots", "--workers", 2, env=env)
     try:

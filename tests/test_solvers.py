@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from ilt.bench import scene_batch
-from ilt.evaluate import relative_errors
+from ilt.evaluate.bench import scene_batch
+from ilt.evaluate.errors import relative_errors
 from ilt.sim import make_scene
-from ilt.solvers import build_operator, choose_solver, estimate_noise, independent_groups
-from ilt.transport import TransportError, bounce_images, cancellation_operator
+from ilt.transport.solvers import build_operator, choose_solver, estimate_noise, independent_groups
+from ilt.transport.operators import TransportError, bounce_images, cancellation_operator
 
 
 def independent_objects(k, beams=64):
@@ -95,32 +95,35 @@ def test_the_group_search_stops_at_a_group_of_more_than_half_and_decides_the_sam
 
 
 def test_one_scan_checks_t_measures_the_noise_and_feeds_the_build(monkeypatch):
-    """load_operator reads T once for its checks, column norms and noise (scan_isf);
-    estimate_noise from the scan equals the blockwise definition, and the build reuses
-    the scan instead of checking T again."""
-    from ilt import decompose as dec, transport
-    from ilt.transport import scan_isf
+    """load_operator reads T once for its checks, column norms and noise (scan_isf),
+    whichever solver it builds: the IsfMatrix it makes is what the solver choice, the
+    build and the diagnostics take. estimate_noise from the scan equals the blockwise
+    definition."""
+    from ilt.decompose.stage import load_operator
+    from ilt.transport import scan
 
     T, _ = independent_objects(2)
     noisy = T + np.random.default_rng(2).normal(scale=1e-3, size=T.shape)
     Tn = noisy / np.linalg.norm(noisy, axis=0)
     assert estimate_noise(noisy) == pytest.approx(np.sqrt(np.mean(Tn[Tn < 0] ** 2)), rel=1e-12)
-    _, scan = scan_isf(noisy)
-    np.testing.assert_allclose(scan.norms, np.linalg.norm(noisy, axis=0), rtol=1e-14)
-    assert scan.negatives == int((noisy < 0).sum())
-    scans = []
-    real = transport.scan_isf
-    monkeypatch.setattr(transport, "scan_isf", lambda T: scans.append(1) or real(T))
-    monkeypatch.setattr(dec, "scan_isf", lambda T: scans.append(1) or real(T))
-    op, diag = dec.load_operator(noisy, None, solver="dense")
-    assert len(scans) == 1
-    assert diag["noise"] == pytest.approx(estimate_noise(noisy))
+    measured = scan.scan_isf(noisy)
+    assert scan.scan_isf(measured) is measured
+    np.testing.assert_allclose(measured.norms, np.linalg.norm(noisy, axis=0), rtol=1e-14)
+    assert measured.negatives == int((noisy < 0).sum())
+    passes = []
+    real = scan._check_isf  # what every pass over T starts with
+    monkeypatch.setattr(scan, "_check_isf", lambda T: passes.append(np.shape(T)) or real(T))
     ref = cancellation_operator(noisy)
-    np.testing.assert_allclose(op.t1_unit, ref.t1_unit, rtol=1e-13)
+    for solver in ("auto", "dense", "mixed", "blocks", "compressed"):
+        passes.clear()
+        op, diag = load_operator(noisy, None, solver=solver, points=np.random.default_rng(0).uniform(size=(128, 2)))
+        assert passes.count(noisy.shape) == 1, solver   # blocks' groups are scanned as they are copied
+        assert diag["noise"] == pytest.approx(estimate_noise(noisy))
+        np.testing.assert_allclose(op.t1_unit, ref.t1_unit, rtol=1e-4 if solver == "compressed" else 1e-6)
 
 
 def test_scan_refuses_what_the_row_by_row_checks_refused():
-    from ilt.transport import scan_isf
+    from ilt.transport.scan import scan_isf
 
     T = np.eye(600) + 0.01
     for value, where in ((np.inf, (400, 7)), (np.nan, (3, 599))):
@@ -145,7 +148,7 @@ def test_mixed_refinement_runs_on_one_blas():
     """MixedOperator's residual products go through scipy's BLAS, the library of its
     float32 solves (numpy's and scipy's OpenBLAS pools fought; docs/numerics.md), and
     give numpy's product."""
-    from ilt.solvers import _product
+    from ilt.transport.solvers import _product
 
     rng = np.random.default_rng(0)
     T = rng.random((300, 300)) + 300 * np.eye(300)

@@ -5,9 +5,8 @@ import pytest
 from scipy.special import ndtr
 
 from ilt.sim.render import render_scene
-from ilt.spots import (
-    SpotParameters, Spot, find_spot, flag_large, format_flags, parse_flags, read_spots, write_spots,
-)
+from ilt.spots.find import SpotParameters, find_spot
+from ilt.spots.table import Spot, flag_large, format_flags, parse_flags, read_spots, write_spots
 
 
 def blob(shape, cx, cy, sx, sy=None, amp=100.0):
@@ -128,7 +127,7 @@ def test_background_in_a_window_or_at_one_pixel_is_the_drawn_map(shape):
     """The background read in a window (the spot's threshold) or at the peak (its
     amplitude) without drawing the map equals the map OpenCV draws, at every pixel,
     tiled by blocks or not."""
-    from ilt.spots import _background_at, _background_grid, _background_map, _background_window
+    from ilt.spots.find import _background_at, _background_grid, _background_map, _background_window
 
     rng = np.random.default_rng(3)
     yy, xx = np.mgrid[:shape[0], :shape[1]]
@@ -148,7 +147,7 @@ def test_background_in_a_window_or_at_one_pixel_is_the_drawn_map(shape):
 def test_median_helpers_are_numpys_and_scipys(shape):
     from scipy.ndimage import median_filter
 
-    from ilt.spots import _median, _median_filter
+    from ilt.spots.find import _median, _median_filter
 
     rng = np.random.default_rng(4)
     grid = rng.random(shape).astype(np.float32)

@@ -4,8 +4,9 @@ import json
 
 import pytest
 
-from ilt.manifest import staged_directory, write_manifest
-from ilt.stage import (
+from ilt.io.staged import staged_directory
+from ilt.io.manifest import write_manifest
+from ilt.io.stage import (
     DONE,
     MISSING,
     STALE,

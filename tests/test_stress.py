@@ -4,10 +4,11 @@ run warns with the figure that explains why."""
 import numpy as np
 import pytest
 
-from ilt.bench import scene_batch
-from ilt.evaluate import noise_amplification, relative_errors
+from ilt.evaluate.bench import scene_batch
+from ilt.evaluate.errors import noise_amplification, relative_errors
 from ilt.sim import make_scene
-from ilt.transport import bounce_images, cancellation_operator, operator_diagnostics
+from ilt.transport.operators import bounce_images, cancellation_operator
+from ilt.transport.diagnostics import operator_diagnostics
 
 
 def closed_enclosure(m, albedo, seed=0):
@@ -28,7 +29,7 @@ def test_albedo_near_one(albedo):
     A, T = closed_enclosure(150, albedo)
     op = cancellation_operator(T)
     d = operator_diagnostics(T, op)
-    # within ilt.transport.RHO_TOL (1e-3) of rho; within 1e-2 of 1 it is refined to 1e-8
+    # within ilt.transport.diagnostics.RHO_TOL (1e-3) of rho; within 1e-2 of 1 it is refined to 1e-8
     assert d["spectral_radius_A"] == pytest.approx(albedo, rel=1e-6 if albedo > 0.99 else 1e-3)
     L1 = np.random.default_rng(1).uniform(size=150)
     L = np.linalg.solve(np.eye(150) - A, L1)
@@ -120,8 +121,8 @@ def test_regularised_t_beats_plain_under_noise(name, beams):
     """The edge-aware filter lowers the worst bounce error for sigma >= 1e-3 without
     raising the direct image's (T1), and leaves a nearly clean T (sigma = 1e-5)
     practically as measured."""
-    from ilt.regularise import regularise_isf
-    from ilt.transport import prepare_isf
+    from ilt.transport.regularise import regularise_isf
+    from ilt.transport.scan import scan_isf
 
     scene = make_scene(name, beams=beams)
     T, scale = scene.isf()
@@ -129,8 +130,9 @@ def test_regularised_t_beats_plain_under_noise(name, beams):
     photos, truth = scene_batch(scene, 4, 4)
     noise = np.random.default_rng(0).normal(size=T.shape)
     for sigma in (1e-5, 1e-3, 1e-2):
-        Tn, norms = prepare_isf(T + sigma * noise)
-        plain_op = cancellation_operator(Tn / norms)   # unit columns, as regularise_isf returns
+        measured = scan_isf(T + sigma * noise)
+        Tn = measured.T
+        plain_op = cancellation_operator(Tn / measured.norms)   # unit columns, as regularise_isf returns
         plain = relative_errors(bounce_images(plain_op, photos, 4).bounces, truth).max()
         Tr, info = regularise_isf(Tn, scene.layout, sigma)
         assert info.change <= info.noise_norm
@@ -149,7 +151,7 @@ def test_edge_aware_filter_keeps_a_facet_edge():
     block of zeros either side of the diagonal, like coplanar points): the filter
     removes noise inside each block and leaves the zero blocks at zero, where a
     filter blind to the edge spreads the other facet's light into them."""
-    from ilt.regularise import smooth_isf
+    from ilt.transport.regularise import smooth_isf
 
     rows, cols = 16, 8   # facet A: layout rows 0-7, facet B: rows 8-15
     m = rows * cols
@@ -175,7 +177,7 @@ def test_bias_against_variance_of_regularisation():
     and error^2 = bias^2 + spread^2 per bounce (the decomposition of the mean squared
     error, with unbiased estimates of both). The width the discrepancy principle picks (the same rule as
     regularise_isf, checked on the same draws) has less error than plain inversion."""
-    from ilt.regularise import bias_variance, regularise_isf
+    from ilt.transport.regularise import bias_variance, regularise_isf
 
     scene = make_scene("box", beams=192)
     T, _ = scene.isf()

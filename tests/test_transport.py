@@ -5,10 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ilt.transport import (
-    TransportError,
-    bounce_images,
-    cancellation_operator,
+from ilt.transport.operators import TransportError, bounce_images, cancellation_operator
+from ilt.transport.diagnostics import (
     decomposition_diagnostics,
     operator_diagnostics,
     RHO_TOL,

@@ -8,24 +8,17 @@
 append-only log, atomic frames, resume.
 """
 
-from .errors import (
-    CameraError,
-    DeviceError,
-    Disconnected,
-    LaserError,
-    LimitHit,
-    PTUError,
-    RigError,
-    RigTimeout,
-)
+import lazy_loader
 
-__all__ = [
-    "CameraError",
-    "DeviceError",
-    "Disconnected",
-    "LaserError",
-    "LimitHit",
-    "PTUError",
-    "RigError",
-    "RigTimeout",
-]
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "config": ["ConfigError", "Exposure", "RigConfig", "load_config", "parse_config"],
+        "errors": ["CameraError", "DeviceError", "Disconnected", "LaserError", "LimitHit", "PTUError", "RigError", "RigTimeout"],
+        "log": ["CaptureLog", "CaptureLogError", "read_log"],
+        "loop": ["capture", "verify_log"],
+        "plan": ["make_plan"],
+        "ptu": ["PanTilt"],
+        "emulator": ["LaserEmulator", "PTUEmulator"],
+    },
+)

@@ -44,7 +44,7 @@ class AdaptiveBracket:
 
     def add(self, exposure: Exposure, green: np.ndarray, saturation: float, saturated: np.ndarray) -> None:
         """Record a frame: ``green`` black-subtracted DN (H/2, W/2), ``saturation`` DN,
-        ``saturated`` bool mask (as :func:`ilt.hdr.raw.read_green` returns them)."""
+        ``saturated`` bool mask (as :func:`ilt.io.raw.read_green` returns them)."""
         s = (slice(None, None, self.stride),) * 2
         clip = saturated[s] | (green[s] > self.high * saturation)
         bound = np.where(clip, self.high * saturation / exposure.relative, 0.0)

@@ -159,7 +159,7 @@ def load_config(path: str | Path) -> RigConfig:
 
 
 def parse_config(raw: dict, where: str = "<config>") -> RigConfig:
-    # the stage sections after capture are read by `ilt run` (ilt.pipeline)
+    # the stage sections after capture are read by `ilt run` (ilt.workspace.pipeline)
     known = {"output", "ptu", "laser", "camera", "bracket", "dark", "plan",
              "merge", "centroids", "build-isf", "photos", "decompose", "cluster"}
     for key in raw:

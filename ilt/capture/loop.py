@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.beam_manifest import BEAM_GLOB, FrameRecord, beam_name, write_beam_manifest
-from ilt.capture_log import CaptureLog, read_log
-from ilt.manifest import LOG_NAME, fingerprint_file, write_manifest
+from ilt.io.beams import BEAM_GLOB, FrameRecord, beam_name, write_beam_manifest
+from ilt.capture.log import CaptureLog, read_log
+from ilt.io.manifest import LOG_NAME, fingerprint_file, write_manifest
 
 from .adaptive import AdaptiveBracket
 from .camera import GPhoto2Camera, make_sim_camera
@@ -318,7 +318,7 @@ def _bracket(cfg, rig, beam_dir, journal, j, position, frames) -> list[Exposure]
         for k, e in enumerate(b.exposures):
             frames.append(_frame(rig, beam_dir, journal, j, f"frame-{k:02d}", e, position))
         return list(b.exposures)
-    from ilt.hdr.raw import read_green
+    from ilt.io.raw import read_green
 
     chooser = AdaptiveBracket(b.exposures, b.low, b.high, b.stride)
     e = chooser.first()
@@ -337,7 +337,7 @@ def _bracket(cfg, rig, beam_dir, journal, j, position, frames) -> list[Exposure]
 
 def _frame(rig: Rig, beam_dir: Path, journal: CaptureLog, j: int, stem: str, exposure: Exposure, position: dict):
     """Shoot one frame into ``beam_dir/stem.<suffix>``: temporary name, fsync, link, log."""
-    from ilt.hdr.exposure import exif_facts, read_exif
+    from ilt.io.exposure import exif_facts, read_exif
 
     camera = rig.camera
     tmp = beam_dir / f".{stem}.tmp-{os.getpid()}{camera.suffix or '.raw'}"

@@ -25,7 +25,7 @@ Exit codes:
 
 #: bad input or data, as opposed to a bug: every ilt error class derives from ValueError,
 #: and OSError covers missing, unreadable and unwritable files (and a worker process
-#: that died, ilt.frames.WorkerError)
+#: that died, ilt.parallel.chunks.WorkerError)
 USER_ERRORS = (ValueError, OSError)
 
 #: signals that end ilt the way Ctrl-C does
@@ -112,5 +112,5 @@ def main() -> None:
     finally:
         for s in TERMINATING:  # ilt is exiting: let it finish doing so
             signal.signal(s, signal.SIG_IGN)
-        if "ilt.workers" in sys.modules:  # a pool ran (not imported otherwise: it loads OpenImageIO)
-            sys.modules["ilt.workers"].stop_servers()
+        if "ilt.parallel.pool" in sys.modules:  # a pool ran (not imported otherwise: it loads OpenImageIO)
+            sys.modules["ilt.parallel.pool"].stop_servers()

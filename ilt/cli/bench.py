@@ -57,9 +57,9 @@ def command(quick, sizes, scenes, noises, solvers, batch, n_bounces, repeats, dr
     draws of T, inverted plainly (width 0) and after filtering at each width; bias
     (mean estimate against the truth), spread (the draws about their mean) and error,
     and how often the filter `--regularise` applies passed the discrepancy principle."""
-    from ilt import bench
-    from ilt.manifest import write_json
-    from ilt.solvers import SOLVERS
+    from ilt.evaluate import bench
+    from ilt.io.manifest import write_json
+    from ilt.transport.solvers import SOLVERS
 
     unknown = set(solvers) - set(SOLVERS) - {"scipy", "regularised"}
     if unknown:

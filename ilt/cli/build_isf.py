@@ -17,7 +17,7 @@ from ilt.cli.options import (
     workers_option,
     workspace_option,
 )
-from ilt.stage_options import BUILD_ISF
+from ilt.workspace.options import BUILD_ISF
 
 
 @click.command("build-isf")
@@ -56,8 +56,8 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
     run' runs the two stages on frames decoded once (centroids keeps them for this
     stage), with the same result bit for bit.
     """
-    from ilt.build_isf import build_isf
-    from ilt.cluster import executor_for
+    from ilt.isf.build import build_isf
+    from ilt.parallel.cluster import executor_for
 
     hdr_dir, spots_dir = workspace.resolve(hdr_dir, "merge"), workspace.resolve(spots_dir, "centroids")
     output = workspace.resolve(output, "build-isf")

@@ -16,7 +16,7 @@ from ilt.cli.options import (
     workers_option,
     workspace_option,
 )
-from ilt.stage_options import CENTROIDS
+from ilt.workspace.options import CENTROIDS
 
 
 @click.command("centroids")
@@ -54,8 +54,9 @@ def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongatio
     (default WORKSPACE/spots). Flagged
     beams are listed on stderr; build-isf drops them.
     """
-    from ilt.cluster import executor_for
-    from ilt.spots import SpotParameters, run_centroids
+    from ilt.parallel.cluster import executor_for
+    from ilt.spots.find import SpotParameters
+    from ilt.spots.stage import run_centroids
 
     hdr_dir, output = workspace.resolve(hdr_dir, "merge"), workspace.resolve(output, "centroids")
     require_dir(hdr_dir, "the HDR frames", "run 'ilt merge' first, or give HDR_DIR")
@@ -80,7 +81,7 @@ def _count(hdr_dir) -> int:
     """Beams to expect, for the progress bar: EXR frames, else beam directories of a capture."""
     from pathlib import Path
 
-    from ilt.beam_manifest import BEAM_GLOB
+    from ilt.io.beams import BEAM_GLOB
 
     path = Path(hdr_dir)
     return sum(1 for p in path.iterdir() if p.suffix.lower() == ".exr") or \

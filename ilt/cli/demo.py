@@ -23,7 +23,7 @@ def command(output, quick, force, as_json):
     tables go to stderr. Running it again skips what is up to date. OUTPUT must be
     new, empty or an earlier demo's output (marked by its manifest.json).
     """
-    from ilt.demo import error_table, run_demo
+    from ilt.workspace.demo import error_table, run_demo
 
     results = run_demo(output, quick=quick, force=force)
     for r in results:

@@ -15,7 +15,7 @@ from ilt.cli.options import (
     workers_option,
     workspace_option,
 )
-from ilt.stage_options import MERGE
+from ilt.workspace.options import MERGE
 
 
 @click.command("merge")
@@ -51,7 +51,7 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
     .valid.png (count of samples used) and .saturated.png (saturated in every frame).
     With --bracket, RAW_FILES are one bracket's frames and -o names the .exr.
     """
-    from ilt.hdr.exposure import parse_times
+    from ilt.io.exposure import parse_times
     from ilt.hdr.merge import NoiseModel
     from ilt.hdr.stages import MergeOptions, load_response, merge_capture, merge_files
 
@@ -71,7 +71,7 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
         require_dir(inputs[0], "the capture", "run 'ilt capture' first, or give CAPTURE_DIR")
         params = {"gain": gain, "read_noise": read_noise, "margin": margin, "color": color,
                   "compression": compression, "response": response_path}
-        from ilt.cluster import executor_for
+        from ilt.parallel.cluster import executor_for
         from ilt.hdr.bracket import list_beams
 
         beams = len(list_beams(inputs[0]))

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import click
 
-from ilt.stage_options import BOUNCES, MAX_BOUNCES, WORKERS, StageOption
+from ilt.workspace.options import BOUNCES, MAX_BOUNCES, WORKERS, StageOption
 
 
 def stage_option(option: StageOption, *short: str, **kwargs):
-    """The click option of a stage option (:mod:`ilt.stage_options`): its long flag,
+    """The click option of a stage option (:mod:`ilt.workspace.options`): its long flag,
     parameter name, default and type from there; ``short`` flags, help and the rest here."""
     kind = {"is_flag": True} if isinstance(option.default, bool) else {"type": option.type}
     return click.option(*short, f"--{option.flag}", option.name, default=option.default, **kind, **kwargs)
@@ -41,7 +41,7 @@ workers_option = stage_option(
 
 
 def scheduler_option_for(work: str):
-    """``--scheduler`` (ilt.cluster), a runtime option like --workers; ``work``: what
+    """``--scheduler`` (ilt.parallel.cluster), a runtime option like --workers; ``work``: what
     runs on the cluster (the help names it)."""
     return click.option(
         "--scheduler", "scheduler", default=None, metavar="ADDRESS",
@@ -116,7 +116,7 @@ def emit(as_json: bool, summary, paths: list[str]) -> None:
 
 
 def _workspace(ctx, param, value):
-    from ilt.workspace import Workspace
+    from ilt.io.workspace_dirs import Workspace
 
     return Workspace(value)
 

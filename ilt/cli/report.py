@@ -20,7 +20,7 @@ def command(workspace, output, as_json):
 
     Prints the path of index.html.
     """
-    from ilt.report import write_report
+    from ilt.report.page import write_report
 
     path = write_report(workspace, output)
     emit(as_json, {"report": str(path)}, [str(path)])

@@ -36,8 +36,8 @@ def command(config, workspace, force, scheduler, as_json):
 
     Prints the workspace's stage directories; `ilt status` says what is up to date.
     """
-    from ilt.cluster import executor_for
-    from ilt.pipeline import run_pipeline, workspace_config
+    from ilt.parallel.cluster import executor_for
+    from ilt.workspace.pipeline import run_pipeline, workspace_config
 
     start = time.monotonic()
     cfg = workspace_config(workspace, config)

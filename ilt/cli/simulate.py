@@ -52,7 +52,7 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
     """
     if frames:
         from ilt.sim.render import render_scene
-        from ilt.simulate import write_frames
+        from ilt.workspace.simulate import write_frames
 
         rs = render_scene(scene, beams=beams, albedo=albedo, seed=seed, spot=spot, fine=fine,
                           px_per_beam=px_per_beam)
@@ -64,7 +64,7 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
                        "frame_shape": list(rs.frame_shape)}, [str(path)])
         return
     from ilt.sim import make_scene
-    from ilt.simulate import write_simulation
+    from ilt.workspace.simulate import write_simulation
 
     sc = make_scene(scene, beams=beams, albedo=albedo, seed=seed)
     params = {"scene": scene, "beams": sc.m, "albedo": albedo, "seed": seed}

@@ -23,7 +23,7 @@ def command(config, workspace, verify, as_json):
 
     Exit code 0 whatever the states; --json for scripts.
     """
-    from ilt.pipeline import workspace_config, workspace_status
+    from ilt.workspace.pipeline import workspace_config, workspace_status
 
     states = workspace_status(workspace, workspace_config(workspace, config), verify="full" if verify else "quick")
     if as_json:

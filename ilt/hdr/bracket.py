@@ -11,7 +11,7 @@ capture/
 Each frame record is ``{"file": "frame-00.dng", "exposure_time": "1/8000", "f_number": "16"}``:
 times in seconds and f-numbers as JSON numbers or exact rational text ("1/125", "1.2").
 Either fact may be missing (null); it is then read from the frame's EXIF. See docs/hdr.md.
-The beam directories' names and manifests are written by :mod:`ilt.beam_manifest`.
+The beam directories' names and manifests are written by :mod:`ilt.io.beams`.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ilt.beam_manifest import BEAM_GLOB, FrameRecord, beam_name
-from ilt.capture_log import CaptureLogError, read_log
-from ilt.manifest import LOG_NAME, MANIFEST
+from ilt.io.beams import BEAM_GLOB, FrameRecord, beam_name
+from ilt.capture.log import CaptureLogError, read_log
+from ilt.io.manifest import LOG_NAME, MANIFEST
 
 log = logging.getLogger(__name__)
 

@@ -18,13 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.beam_manifest import FrameRecord
+from ilt.io.beams import FrameRecord
 from ilt.hdr.bracket import Bracket, list_beams, logged_fingerprints, read_beam
 from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
 from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
-from ilt.hdr.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
-from ilt.imageio import write_exr, write_png
-from ilt.manifest import MANIFEST, atomic_path, fingerprint_file, staged_directory, write_json, write_manifest
+from ilt.io.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
+from ilt.io.exr import write_exr, write_png
+from ilt.io.manifest import MANIFEST, fingerprint_file, write_json, write_manifest
+from ilt.io.atomic import atomic_path
+from ilt.io.staged import staged_directory
 
 log = logging.getLogger(__name__)
 
@@ -277,10 +279,10 @@ def merge_capture(
 
 
 def _run_beams(beams, out_dir, options, executor, workers, logged, progress=None) -> list[dict]:
-    """Every beam through :func:`ilt.frames.run_chunks` (a bounded number in flight, a
+    """Every beam through :func:`ilt.parallel.chunks.run_chunks` (a bounded number in flight, a
     dead worker named by its beam) on the caller's executor or a pool of ``workers``
-    that is stopped at once on an error or a signal (:func:`ilt.frames.beam_executor`)."""
-    from ilt.frames import beam_executor, run_chunks
+    that is stopped at once on an error or a signal (:func:`ilt.parallel.chunks.beam_executor`)."""
+    from ilt.parallel.chunks import beam_executor, run_chunks
 
     tasks = [([i], b, out_dir, options, logged.get(b.name)) for i, b in enumerate(beams)]
     with beam_executor(executor, workers) as pool:
@@ -381,7 +383,7 @@ def collect_calibration_input(inputs: list[str | os.PathLike], times: list[Fract
 
 def _load_normalised(path: Path, record: FrameRecord | None, hand_time):
     """(M image, facts, is_raw, clipped mask) of one file."""
-    from ilt.hdr.exposure import resolve_facts
+    from ilt.io.exposure import resolve_facts
 
     if path.suffix.lower() in RAW_SUFFIXES:
         frame = read_frame(path, record, hand_time)

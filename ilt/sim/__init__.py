@@ -5,7 +5,14 @@ under an occluder, or three inside faces of a box (Fig. 7), with the true ``A``,
 ``T1``, ``T``, n-bounce ISFs and photos under flashlight, room and projector light.
 """
 
-from .lighting import ILLUMINATIONS
-from .scene import SCENES, Scene, make_scene
+import lazy_loader
 
-__all__ = ["ILLUMINATIONS", "SCENES", "Scene", "make_scene"]
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "lighting": ["ILLUMINATIONS"],
+        "scene": ["SCENES", "Scene", "make_scene"],
+        "render": ["render_scene"],
+        "sensor": ["SensorModel", "write_bracket", "write_dng"],
+    },
+)

@@ -31,7 +31,7 @@ def gib(n_bytes: float) -> str:
 
 def require(needed: int, what: str) -> None:
     """Raise :class:`InsufficientMemory` when ``needed`` bytes exceed the memory available."""
-    from ilt.solvers import available_memory
+    from ilt.parallel.memory import available_memory
 
     available = available_memory()
     if needed > available:

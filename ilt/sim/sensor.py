@@ -151,7 +151,7 @@ def write_dng(
     """
     import tifffile
 
-    from ilt.manifest import atomic_path
+    from ilt.io.atomic import atomic_path
 
     raw = expose(radiance, exposure_time, f_number, sensor, rng) if mosaic is None else mosaic
     raw = np.ascontiguousarray(raw, dtype=np.uint16)
@@ -196,7 +196,7 @@ def write_ldr(
     ``radiance`` is per pixel (height, width); the sensor's ``colour_scale`` is ignored
     (a grey camera), its response applies; ``black_level`` should be 0 for such files.
     """
-    from ilt.manifest import atomic_path
+    from ilt.io.atomic import atomic_path
 
     grey = SensorModel(**{**_fields(sensor), "colour_scale": (1.0, 1.0, 1.0)})
     frame = expose(radiance, exposure_time, f_number, grey, rng)
@@ -256,7 +256,7 @@ def write_bracket(
     exposure is added as ``dark.dng``. The beam's ``manifest.json`` lists the nominal
     facts, as a camera reports them.
     """
-    from ilt.beam_manifest import FrameRecord, write_beam_manifest
+    from ilt.io.beams import FrameRecord, write_beam_manifest
 
     beam_dir = Path(beam_dir)
     beam_dir.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,60 @@
+"""TODO docstring."""
+
+
+from __future__ import annotations
+
+
+import numpy as np
+
+from ilt.isf.fine import FineOperator
+
+
+def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np.ndarray,
+                    excluded: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The photo's full-resolution bounce images (module docstring).
+
+    photo : (H, W) or (H, W, c) float32, on the cells' grid; decomposition : its
+    :class:`ilt.transport.operators.Decomposition` (cell integrals, (m,) or (m, c)); t1 : (m,) the
+    operator's diagonal of T1 for the ISF's T; excluded : (H, W) bool pixels left out
+    (saturated): no coverage.
+    Returns {"bounce-1" .. "bounce-N", "indirect", "residual", "coverage"}: (H, W[, c])
+    float32 images; ``photo = bounce-1 + ... + bounce-N + residual`` at every pixel.
+    Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
+    """
+    image = np.asarray(photo)
+    shape, m, count = image.shape, fine.geometry.m, decomposition.count
+    flat = image.reshape(shape[0] * shape[1], -1)
+    bounces = np.asarray(decomposition.bounces).reshape(count, m, -1)
+    residual = bounces.sum(axis=0) + np.asarray(decomposition.residual).reshape(m, -1)   # r_0 = L
+    per_cell = fine.per_cell(bounces / t1[None, :, None]).reshape(-1, m, count, flat.shape[1])
+    basis = fine.geometry.basis(fine.degree)
+    inside = fine.geometry.inside
+    excluded = None if excluded is None or not excluded.any() else excluded.reshape(-1)
+
+    def image_of(values_inside, outside=None):
+        full = np.zeros(flat.shape, np.float32) if outside is None else outside.astype(np.float32)
+        full[inside] = values_inside
+        if excluded is not None:
+            full[excluded] = 0.0 if outside is None else outside[excluded]
+        return full.reshape(shape)
+
+    out = {}
+    previous = None
+    for n in range(count):
+        residual = residual - bounces[n]                               # r_(n+1)
+        phi = fine.field(residual, per_cell[:, :, n], basis)           # Phi_n
+        if n == 0:
+            out["bounce-1"] = image_of(flat[inside] - phi)
+            out["indirect"] = image_of(phi)
+        else:
+            out[f"bounce-{n + 1}"] = image_of(previous - phi)
+        previous = phi
+    out["residual"] = image_of(previous, flat)
+    coverage = fine.coverage().reshape(-1)
+    if excluded is not None:
+        coverage[excluded] = 0.0
+    out["coverage"] = coverage.reshape(fine.shape)
+    return {name: out[name] for name in [f"bounce-{n}" for n in range(1, count + 1)]
+            + ["indirect", "residual", "coverage"]}
+
+

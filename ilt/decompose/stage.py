@@ -1,0 +1,516 @@
+"""The decompose stage: photos (EXR frames or sample vectors) to n-bounce images.
+
+Operators are built once per ISF and cached on disk, keyed by the fingerprint of T,
+so decomposing the next photo of the same scene costs only the solves.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ilt.isf.cells import integrate, mosaic
+from ilt.transport.compressed import grid_points
+from ilt.io.frames import FrameError, PixelMapping
+from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
+from ilt.decompose.fullres import full_resolution
+from ilt.io.exr import ImageError, read_exr, write_exr
+from ilt.isf.directory import ISF
+from ilt.isf.layout import sample_frame, splat, vector_to_image
+from ilt.io.manifest import (
+    MANIFEST,
+    StageError,
+    fingerprint_array,
+    fingerprint_file,
+    read_manifest,
+    save_npy,
+    write_json,
+    write_manifest,
+)
+from ilt.io.staged import staged_directory
+from ilt.io.preview import bounce_panel
+from ilt.transport.regularise import regularise_isf
+from ilt.transport.solvers import build_operator, choose_solver, estimate_noise
+from ilt.transport.operators import CancellationOperator, TransportError, bounce_images, cancellation_operator
+from ilt.transport.diagnostics import decomposition_diagnostics, operator_diagnostics
+from ilt.transport.scan import scan_isf
+
+log = logging.getLogger(__name__)
+
+_CACHE_ARRAYS = ("factors", "perm", "t1_unit", "column_norms")
+
+
+class InputError(ValueError):
+    """A photo that cannot be decomposed with the ISF at hand; names the file."""
+
+
+def default_cache_dir() -> Path:
+    """``$ILT_CACHE_DIR``, else ``$XDG_CACHE_HOME/ilt``, else ``~/.cache/ilt``."""
+    if os.environ.get("ILT_CACHE_DIR"):
+        return Path(os.environ["ILT_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "ilt"
+
+
+def load_operator(
+    T: np.ndarray,
+    cache_dir: Path | None,
+    solver: str = "auto",
+    noise: float | None = None,
+    layout: tuple[int, int] | None = None,
+    regularise: bool = False,
+    beams: np.ndarray | None = None,
+    points: np.ndarray | None = None,
+    fingerprint: str | None = None,
+    executor=None,
+):
+    """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
+    the same T (and regularisation) was seen before.
+
+    ``solver``: auto, dense, mixed, blocks, series or compressed (:mod:`ilt.transport.solvers`).
+    ``noise``: sigma of T relative to its unit columns (also the floor below which
+    blocks and series drop entries, and compressed's tolerance); None measures it from
+    T's negative entries when it can. ``points`` (m, 2): where each sample is seen in
+    the camera frame, which compressed orders its tree by (points near in the image are
+    near in the scene, far more often than neighbours on the plan's grid are: the box's
+    top rank at m = 3072 is 216 by pixels, 521 by grid); without them, ``layout`` and
+    ``beams`` (plan beam of each row) place the samples on the plan's grid.
+    ``regularise``: denoise T first (:mod:`ilt.transport.regularise`; needs the noise and the
+    plan ``layout``). Returns the operator and a JSON-ready dict of diagnostics with
+    ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
+    ``series`` or ``compressed`` figures of those solvers, build included).
+    ``fingerprint``: T's :func:`~ilt.io.manifest.fingerprint_array` when the caller has it.
+    ``executor``: a cluster's (:func:`ilt.parallel.cluster.executor_for`), where ``compressed``
+    compresses its blocks; the other solvers ignore it.
+    """
+    # "-lut": the factors' layout (those of T's transpose, :class:`ilt.transport.operators.CancellationOperator`);
+    # entries ilt wrote before, the factors of T itself, are not read as such
+    m = T.shape[0]
+    key = (fingerprint or fingerprint_array(np.asarray(T))).split(":", 1)[1] + "-lut"
+    # one pass (scan_isf) checks T and measures its column norms and negative entries
+    # (the noise): the IsfMatrix handed to the solver choice, the build and the
+    # diagnostics. Not made for a dense operator with the noise given, which may be in
+    # the cache: that reads T only for its fingerprint (a cache miss scans it to factorise)
+    if noise is None or regularise or solver != "dense":
+        T = scan_isf(T)
+    measured = estimate_noise(T) if noise is None else noise
+    notes = {
+        "noise": measured,
+        "noise_source": "given" if noise is not None else
+        ("measured from negative entries of T" if measured is not None else "unknown (give --noise)"),
+    }
+    if regularise:
+        if measured is None:
+            raise TransportError("regularising needs the noise level of T and T has no negative entries "
+                                 "to measure it from: give --noise")
+        if layout is None or layout[0] * layout[1] != m:
+            raise TransportError(f"regularising needs the plan's full grid layout; this ISF has {layout} "
+                                 f"for m = {m} (beams were dropped?)")
+        regularised, reg = regularise_isf(T, layout, measured)
+        T = scan_isf(regularised)  # another matrix: scanned once more
+        notes.update(regularisation=reg.describe(), regularisation_width=reg.width)
+        key += f"-reg{reg.width:g}-{measured:.3e}"
+    name, reason = choose_solver(T, measured) if solver == "auto" else (solver, f"asked for {solver}")
+    notes.update(fingerprint="sha256:" + key.split("-")[0])
+    if executor is not None and name != "compressed":
+        log.info("the %s solver runs in this process: the cluster (--scheduler) compresses T's blocks for the "
+                 "compressed solver only", name)
+    if name != "dense":
+        log.info("building the %s operator (m = %d): %s", name, m, reason)
+        if points is None and name == "compressed" and (layout is None or min(layout) == 1):
+            log.warning("no sample positions (samples.csv) and no 2D plan: the compressed solver orders the "
+                        "tree by sample index, whose blocks can have several times the rank of an order by "
+                        "pixels (972 against 143 at m = 12288); put samples.csv beside T.npy")
+        points = grid_points(layout, m, beams) if points is None else points
+        op, why = build_operator(T, name, measured, reason, points=points, executor=executor)
+        figures = {op.solver: op.figures} if op.solver in ("series", "compressed") else {}
+        return op, {**operator_diagnostics(T, op), **notes, "solver": op.solver, "solver_reason": why,
+                    "rcond": op.rcond, "cached": False, **figures}
+    notes.update(solver="dense", solver_reason=reason)
+    entry = cache_dir / "operators" / key if cache_dir is not None else None
+    if entry is not None and (entry / "diagnostics.json").exists():
+        try:
+            op, diagnostics = _read_cached_operator(entry, m)
+            log.info("operators for T %s… read from the cache %s", key[:12], entry)
+            return op, {**diagnostics, **notes, "cached": True}
+        except (OSError, ValueError, KeyError) as exc:
+            log.warning("ignoring the operator cache %s (%s); rebuilding it", entry, exc)
+    log.info("factorising T (m = %d)", m)
+    T = scan_isf(T)
+    op = cancellation_operator(T)
+    diagnostics = {**operator_diagnostics(T, op), "rcond": op.rcond}
+    if entry is not None:
+        try:
+            _remove_unchecked_entry(entry)
+            with staged_directory(entry, force=True) as tmp:
+                for name in _CACHE_ARRAYS:
+                    save_npy(tmp / f"{name}.npy", getattr(op, name))
+                write_json(tmp / "diagnostics.json", diagnostics)
+                write_manifest(tmp, "operators", {"m": m})  # each file's sha256, checked on load
+        except (OSError, StageError) as exc:
+            log.warning("could not cache the operators in %s (%s)", entry, exc)
+    return op, {**diagnostics, **notes, "cached": False}
+
+
+def _remove_unchecked_entry(entry: Path) -> None:
+    """Remove a cache entry an older ilt wrote without manifest.json (so without the
+    sha256 of its files) when it holds only the cache's own files: it cannot be
+    checked, and a directory without a manifest is not one ilt replaces."""
+    own = {f"{name}.npy" for name in _CACHE_ARRAYS} | {"diagnostics.json"}
+    if not entry.is_dir() or (entry / MANIFEST).exists() or {p.name for p in entry.iterdir()} - own:
+        return
+    for p in entry.iterdir():
+        p.unlink()
+    entry.rmdir()
+
+
+class _HashingReader:
+    """A binary file read through sha256: ``np.load`` reads it in chunks (it is no real
+    file to numpy), so the array and its hash come from one read of the bytes."""
+
+    def __init__(self, f):
+        self._f, self.hash = f, hashlib.sha256()
+
+    def read(self, n=-1):
+        data = self._f.read(n)
+        self.hash.update(data)
+        return data
+
+    def seek(self, *args):  # np.load peeks at the magic string, then seeks back to the start
+        self.hash = hashlib.sha256()
+        return self._f.seek(*args)
+
+    def tell(self):
+        return self._f.tell()
+
+
+def _read_cached_operator(entry: Path, m: int) -> tuple[CancellationOperator, dict]:
+    """The operator in a cache entry, every file checked against the sha256 its
+    manifest.json recorded and every array against the shape of an (m, m) T.
+    ValueError (or OSError, KeyError) says what is wrong; the caller rebuilds."""
+    outputs = read_manifest(entry)["outputs"]
+    arrays = {}
+    for name in _CACHE_ARRAYS:
+        with open(entry / f"{name}.npy", "rb") as f:
+            reader = _HashingReader(f)
+            arrays[name] = np.load(reader, allow_pickle=False)
+            reader.read()  # bytes after the array are part of the file too
+        if "sha256:" + reader.hash.hexdigest() != outputs.get(f"{name}.npy"):
+            raise ValueError(f"{name}.npy differs from the sha256 its manifest.json recorded")
+        shape = (m, m) if name == "factors" else (m,)
+        if arrays[name].shape != shape:
+            raise ValueError(f"{name}.npy has shape {arrays[name].shape}, T needs {shape}")
+    text = (entry / "diagnostics.json").read_bytes()
+    if "sha256:" + hashlib.sha256(text).hexdigest() != outputs.get("diagnostics.json"):
+        raise ValueError("diagnostics.json differs from the sha256 its manifest.json recorded")
+    diagnostics = json.loads(text)
+    op = CancellationOperator(
+        factors=np.asfortranarray(arrays["factors"]), perm=arrays["perm"], t1_unit=arrays["t1_unit"],
+        column_norms=arrays["column_norms"], rcond=diagnostics["rcond"],
+    )
+    return op, diagnostics
+
+
+@dataclass(frozen=True)
+class Photo:
+    """One input: its sample vector(s) and how to show results.
+
+    values : (m,) or (m, k) float64; channels : names of the k columns (or None);
+    frame : True when it came from a camera frame (results are also splatted back);
+    image : the frame itself, (H, W, k) float32 (None for sample vectors);
+    saturated : (H, W) bool pixels its merge found saturated in every exposure (None: none known).
+    """
+
+    name: str
+    path: Path
+    values: np.ndarray
+    channels: list[str] | None
+    frame: bool
+    image: np.ndarray | None = None
+    saturated: np.ndarray | None = None
+
+
+def _saturated_mask(path: Path, shape) -> np.ndarray | None:
+    """The ``<stem>.saturated.png`` that ``ilt merge`` writes beside a photo, as (H, W) bool."""
+    import cv2
+
+    mask_path = path.with_suffix(".saturated.png")
+    if not mask_path.exists():
+        return None
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+    if mask is None or mask.shape != tuple(shape):
+        raise InputError(f"{mask_path}: not a {shape[1]} x {shape[0]} mask of {path.name}'s saturated pixels")
+    return mask > 0
+
+
+def read_photo(path: str | os.PathLike, isf: ISF) -> Photo:
+    """Read an EXR frame or a ``.npy`` of sample vectors, shape (m,) or (m, k).
+
+    A frame is integrated over the ISF's cells when it has them (``cells.exr``, the
+    same cells T was built on), else read at the ISF's sample pixels. It must be on the
+    ISF's frame grid: same size and, when its header says, the same pixel mapping (a
+    photo merged like the beam frames); a header without a mapping is not checked.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path}: not a readable .npy array ({exc})") from None
+        if values.ndim not in (1, 2) or values.shape[0] != isf.m:
+            raise InputError(
+                f"{path}: shape {values.shape} does not match the ISF's m = {isf.m} samples "
+                f"(expected ({isf.m},) or ({isf.m}, k))"
+            )
+        if not np.issubdtype(values.dtype, np.number):
+            raise InputError(f"{path}: dtype {values.dtype} is not numeric")
+        values = values.astype(np.float64)
+        channels, frame, image, saturated = None, False, None, None
+    elif suffix == ".exr":
+        if isf.samples is None:
+            raise InputError(f"{path}: an EXR photo needs the ISF's samples.csv to know which pixels to read")
+        try:
+            image, attrs = read_exr(path)
+        except ImageError as exc:
+            raise InputError(str(exc)) from None
+        if isf.frame_shape is not None and tuple(image.shape[:2]) != tuple(isf.frame_shape):
+            raise InputError(
+                f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, the ISF was captured at "
+                f"{isf.frame_shape[1]} x {isf.frame_shape[0]}"
+            )
+        if isf.cells is not None and image.shape[:2] != isf.cells.shape:
+            raise InputError(f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, the ISF's cells "
+                             f"are {isf.cells.shape[1]} x {isf.cells.shape[0]}")
+        try:
+            own = PixelMapping.from_attributes(attrs, path)
+        except FrameError as exc:
+            raise InputError(str(exc)) from None
+        if own is not None and own != isf.mapping:
+            raise InputError(f"{path}: pixel mapping {own.as_dict()} differs from the ISF's "
+                             f"{isf.mapping.as_dict()}; decompose photos on the grid of the beam frames")
+        try:
+            if isf.cells is not None:
+                values = integrate(image, isf.cells, isf.m)
+            else:
+                values = sample_frame(image, isf.grid_samples).astype(np.float64)
+        except ValueError as exc:
+            raise InputError(f"{path}: {exc}") from None
+        channels = list(attrs.get("channels", []))
+        if values.ndim == 2 and values.shape[1] == 1:
+            values = values[:, 0]
+        frame = True
+        saturated = _saturated_mask(path, image.shape[:2])
+    else:
+        raise InputError(f"{path}: unsupported input type '{suffix}' (use .exr frames or .npy sample vectors)")
+    if not np.all(np.isfinite(values)):
+        i = int(np.argwhere(~np.isfinite(values))[0][0])
+        raise InputError(f"{path}: sample {i} is not finite")
+    return Photo(name=path.stem, path=path, values=values, channels=channels or None, frame=frame, image=image,
+                 saturated=saturated if saturated is not None and saturated.any() else None)
+
+
+def _images(values: np.ndarray, isf: ISF, frame: bool) -> dict[str, np.ndarray]:
+    """The picture(s) of a sample vector: ``layout`` always, ``frame`` for frame inputs
+    (a mosaic of cells, each painted with its value per pixel, when the ISF has cells;
+    else the values splatted at the sample pixels)."""
+    out = {"layout": vector_to_image(values, isf.layout, isf.beams)}
+    if frame:
+        out["frame"] = (mosaic(values, isf.cells) if isf.cells is not None
+                        else splat(values, isf.grid_samples, isf.frame_shape))
+    return out
+
+
+def write_decomposition(
+    directory: Path, photo: Photo, isf: ISF, decomposition, diagnostics: dict, fine: FineOperator | None = None,
+    t1: np.ndarray | None = None,
+) -> None:
+    """Fill ``directory`` with one photo's results (see docs/formats.md): with a fine
+    operator (and a frame input), the full-resolution images at the top and the
+    sample-level ones in ``samples/``; else the sample-level ones only."""
+    save_npy(directory / "bounces.npy", decomposition.bounces)
+    save_npy(directory / "residual.npy", decomposition.residual)
+    samples = directory / "samples"
+    samples.mkdir()
+    named = {"photo": photo.values}
+    named.update({f"bounce-{n}": b for n, b in enumerate(decomposition.bounces, start=1)})
+    named["indirect"] = decomposition.indirect
+    named["residual"] = decomposition.residual
+    channels = photo.channels
+    for name, values in named.items():
+        for kind, image in _images(values, isf, photo.frame).items():
+            suffix = "" if kind == "layout" else ".frame"
+            attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name}
+            if kind == "frame":
+                attributes.update(isf.mapping.attributes())
+            write_exr(samples / f"{name}{suffix}.exr", image, channels=channels, attributes=attributes)
+    first = (lambda v: v) if photo.values.ndim == 1 else (lambda v: v[:, 0])
+    panels = {"photo": first(photo.values)}
+    panels.update({f"L{n}": first(b) for n, b in enumerate(decomposition.bounces, start=1)})
+    panels["indirect"] = first(decomposition.indirect)
+    bounce_panel(samples / "preview.png", {k: vector_to_image(v, isf.layout, isf.beams) for k, v in panels.items()})
+    if fine is not None and photo.image is not None:
+        images = full_resolution(fine, photo.image, decomposition, t1, photo.saturated)
+        for name, image in images.items():
+            attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name, **isf.mapping.attributes()}
+            write_exr(directory / f"{name}.exr", image, channels=["Y"] if name == "coverage" else channels,
+                      attributes=attributes)
+        shown = {"photo": photo.image[:, :, 0]}
+        shown.update({k.replace("-", " "): images[k][:, :, 0] for k in images if k.startswith("bounce-")
+                      and int(k[7:]) <= PREVIEW_BOUNCES})
+        shown["indirect"] = images["indirect"][:, :, 0]
+        bounce_panel(directory / "preview.png", shown)
+    else:
+        shutil.copyfile(samples / "preview.png", directory / "preview.png")
+    write_json(directory / "summary.json", diagnostics)
+
+
+#: full-resolution bounce images drawn in preview.png (all are written as EXR)
+PREVIEW_BOUNCES = 3
+
+
+def _full_resolution_summary(photo: Photo, fine: FineOperator | None, why: str) -> dict:
+    if not photo.frame:
+        return {"written": False, "reason": "a sample vector has no pixels"}
+    if fine is None:
+        return {"written": False, "reason": why}
+    saturated = int(photo.saturated.sum()) if photo.saturated is not None else 0
+    covered = fine.geometry.inside.size - (int(photo.saturated.ravel()[fine.geometry.inside].sum()) if saturated else 0)
+    return {"written": True, "degree": fine.degree, "pixels": int(photo.image.shape[0] * photo.image.shape[1]),
+            "coverage": covered / (photo.image.shape[0] * photo.image.shape[1]), "saturated_pixels": saturated}
+
+
+def decompose(
+    isf: ISF,
+    inputs: list[str | os.PathLike],
+    out: str | os.PathLike,
+    n_bounces: int = 8,
+    tol: float = 0.0,
+    cache_dir: Path | None = None,
+    force: bool = False,
+    solver: str = "auto",
+    noise: float | None = None,
+    regularise: bool = False,
+    samples_only: bool = False,
+    executor=None,
+) -> list[dict]:
+    """Decompose every input into ``out/<stem>/``; returns one summary per input.
+
+    ``solver``, ``noise`` and ``regularise`` choose how ``C1`` is built (see
+    :func:`load_operator`). EXR photos are also split at full resolution when the ISF
+    has a fine operator (:mod:`ilt.isf.fine`), unless ``samples_only``; saturated
+    pixels (``<stem>.saturated.png`` beside the photo, as ``ilt merge`` writes it) are
+    left out of the full-resolution images and counted.
+
+    All inputs are read and checked before anything is written, so a bad input leaves
+    no output behind. Each ``out/<stem>`` is written to a temporary directory and
+    renamed into place on its own: a failure leaves the photos before it complete, and
+    a run again skips those (a log line each) whose ``out/<stem>`` records the same
+    photo, T and parameters; an ``out/<stem>`` made otherwise needs ``force``.
+    ``executor``: where the compressed solver compresses T's blocks (:func:`load_operator`);
+    no output depends on it.
+    """
+    photos = [read_photo(p, isf) for p in inputs]
+    stems = [p.name for p in photos]
+    if len(set(stems)) != len(stems):
+        raise InputError(f"two inputs share a name ({stems}); their results would collide in {out}")
+    out = Path(out)
+    fingerprint = fingerprint_array(np.asarray(isf.T))
+    parameters = {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
+                  "samples_only": samples_only, "fine": _fine_fingerprint(isf, samples_only)}
+    hashes = {photo.name: fingerprint_file(photo.path) for photo in photos}   # each photo read once
+    done = {}
+    for photo in photos:
+        if (out / photo.name).exists() and not force:
+            wanted = {hashes[photo.name], fingerprint}
+            previous = _previous_result(out / photo.name, parameters, wanted)
+            if previous is None:
+                raise InputError(f"{out / photo.name} exists and was not made from {photo.path} with these "
+                                 "options and this ISF; use --force to replace it")
+            done[photo.name] = previous
+    todo = [p for p in photos if p.name not in done]
+    for photo in photos:
+        if photo.name in done:
+            log.info("%s: %s is already decomposed with these options; kept", photo.path, out / photo.name)
+    if not todo:
+        return [done[p.name] for p in photos]
+    fine, why = None, "--samples-only"
+    if not samples_only and any(p.frame for p in todo):
+        try:
+            fine, why = load_fine(isf, fingerprint)
+        except FineError as exc:
+            raise InputError(str(exc)) from None
+        if fine is None:
+            log.info("%s", why)
+    try:
+        op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
+                                    isf.samples, fingerprint=fingerprint, executor=executor)
+    except TransportError as exc:
+        raise TransportError(f"{isf.path}: {exc}") from None
+    for w in op_diag["warnings"]:
+        log.warning("%s: %s", isf.path, w)
+    created = not out.exists()
+    summaries = {}
+    try:
+        for photo in todo:
+            dec = bounce_images(op, photo.values, n_bounces=n_bounces, tol=tol)
+            diag = decomposition_diagnostics(photo.values, dec)
+            for w in diag["warnings"]:
+                log.warning("%s: %s", photo.path, w)
+            full = fine is not None and photo.frame
+            summary = {
+                "input": str(photo.path),
+                "input_fingerprint": hashes[photo.name],
+                "isf": str(isf.path),
+                "operators": op_diag,
+                "decomposition": diag,
+                "full_resolution": _full_resolution_summary(photo, fine, why),
+            }
+            if full and photo.saturated is not None:
+                log.warning("%s: %d saturated pixels (values are lower bounds) left out of the full-resolution "
+                            "images (coverage 0, all residual)", photo.path, int(photo.saturated.sum()))
+            with staged_directory(out / photo.name, force=force) as tmp:
+                write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1)
+                write_manifest(
+                    tmp, "decompose", parameters,
+                    inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): op_diag["fingerprint"]},
+                )
+            log.info("%s -> %s (%s)", photo.path, out / photo.name, diag["stop_reason"])
+            summaries[photo.name] = {**summary, "output": str(out / photo.name)}
+    except BaseException:
+        if created and out.exists() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+    return [done.get(p.name) or summaries[p.name] for p in photos]
+
+
+def _fine_fingerprint(isf: ISF, samples_only: bool) -> str | None:
+    """The fine operator a decomposition used, by its manifest's hash (None: none), so a
+    re-run after ``fine/`` was built or rebuilt is not taken for one already done."""
+    manifest = Path(isf.path).parent / FINE_DIR / MANIFEST
+    return None if samples_only or not manifest.exists() else fingerprint_file(manifest)
+
+
+def _previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dict | None:
+    """The summary of an earlier decomposition in ``directory`` when its manifest records
+    ``parameters`` and exactly the fingerprints ``inputs`` (photo and T), else None."""
+    try:
+        manifest = read_manifest(directory)
+        summary = json.loads((directory / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if manifest.get("parameters") != parameters or set(manifest.get("inputs", {}).values()) != inputs:
+        return None
+    return {**summary, "output": str(directory), "skipped": True}
+
+
+__all__ = ["decompose", "read_photo", "load_operator", "InputError", "TransportError", "default_cache_dir"]

@@ -1,0 +1,144 @@
+"""Stage manifests, content fingerprints and atomic directory writes (DESIGN.md sec. 3).
+
+A stage never writes into its final directory: it fills a hidden sibling temporary
+directory and renames it into place, so an interrupted run leaves either the old
+directory or the complete new one, never a half stage that looks whole.
+
+It replaces only what it may lose: an empty directory or an earlier output of the same
+stage holding nothing but its own files (issue 14, "nothing a user made is ever lost").
+What it writes gets the modes an ordinary open() and mkdir() would give under the
+umask, and temporaries carry their writer's pid, so the next run can remove those of
+a process that is gone.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ilt import __version__
+from ilt.io.atomic import atomic_path
+
+MANIFEST = "manifest.json"
+#: the run record ``ilt run`` keeps beside a stage's manifest (:mod:`ilt.io.stage`)
+RECORD = ".stage.json"
+#: a capture's journal (:mod:`ilt.capture.log`): the raw data it names is never replaced
+LOG_NAME = "capture.jsonl"
+
+
+class StageError(ValueError):
+    """A stage directory that cannot be written or read as asked."""
+
+
+def fingerprint_file(path: str | os.PathLike, chunk: int = 1 << 22) -> str:
+    """``sha256:<hex>`` of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return "sha256:" + h.hexdigest()
+
+
+def fingerprint_array(a: np.ndarray) -> str:
+    """``sha256:<hex>`` of an array's dtype, shape and bytes (C order)."""
+    h = hashlib.sha256()
+    h.update(f"{a.dtype.str}{a.shape}".encode())
+    h.update(np.ascontiguousarray(a).data)
+    return "sha256:" + h.hexdigest()
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+def write_json(path: str | os.PathLike, data: dict) -> Path:
+    """Write JSON atomically (temporary file in the same directory, fsync, rename)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+    return Path(path)
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot write {type(obj).__name__} to JSON")
+
+
+def save_npy(path: str | os.PathLike, array: np.ndarray) -> Path:
+    """``np.save`` atomically (no pickles)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, array, allow_pickle=False)
+    return Path(path)
+
+
+def write_manifest(
+    directory: str | os.PathLike,
+    stage: str,
+    parameters: dict,
+    inputs: dict[str, str] | None = None,
+    extra: dict | None = None,
+) -> Path:
+    """Write ``directory/manifest.json``: stage, ilt version, parameters, inputs with
+    fingerprints, and the fingerprint of every file written in the directory."""
+    directory = Path(directory)
+    outputs = {
+        str(p.relative_to(directory)): fingerprint_file(p)
+        for p in sorted(directory.rglob("*"))
+        if p.is_file() and p.name != MANIFEST and not p.name.startswith(".")
+    }
+    data = {
+        "stage": stage,
+        "ilt_version": __version__,
+        "parameters": parameters,
+        "inputs": inputs or {},
+        "outputs": outputs,
+    }
+    if extra:
+        data.update(extra)
+    return write_json(directory / MANIFEST, data)
+
+
+def read_manifest(directory: str | os.PathLike) -> dict:
+    path = Path(directory) / MANIFEST
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise StageError(f"{path}: no manifest (not a stage directory written by ilt?)") from None
+    except json.JSONDecodeError as exc:
+        raise StageError(f"{path}: not valid JSON ({exc})") from None
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+

@@ -1,0 +1,20 @@
+"""The impulse scatter matrix T: how it is sampled, built, stored and refined.
+
+``directory`` (the ISF directory: ``T.npy``, ``samples.csv``, ``cells.exr``, scales),
+``cells`` (each sample's cell of pixels), ``layout`` (the plan's layout: a vector of m
+samples as an image), ``build`` (``ilt build-isf``: T's columns from the frames, one
+pass), ``fine`` (the fine operator for full-resolution bounces, fitted in that pass).
+"""
+
+import lazy_loader
+
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "build": ["build_isf", "centroids_and_isf"],
+        "cells": ["integrate", "mosaic", "voronoi_cells"],
+        "directory": ["ISF", "ISFError", "load_isf", "write_isf"],
+        "fine": ["FineError", "FineOperator", "fit_operator", "load_fine"],
+        "layout": ["sample_frame", "splat", "vector_to_image"],
+    },
+)

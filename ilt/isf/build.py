@@ -1,0 +1,365 @@
+"""The build-isf stage: beam frames + spots -> the impulse scatter matrix T (paper Sec. 4).
+
+Column j of T is beam j's frame integrated over the cell of every kept spot
+(:mod:`ilt.isf.cells`, ``sampling="cell"``), or read at the pixel of every spot's centroid
+(``sampling="point"``, the paper's method), then scaled to unit 2-norm; the scales
+are kept. Flagged beams and near-duplicate spots are dropped, each with its reason,
+so that beams, points and pixels stay one to one.
+
+Spots and ``samples.csv`` are in full-frame sensor pixels; the cells, and the frames
+they integrate, are on the HDR frame grid (half resolution after ``ilt merge``), whose
+mapping to full-frame pixels is recorded in ``cells.exr`` and the manifest.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+from scipy.spatial import cKDTree
+
+from ilt.isf.cells import cell_operator, integrate_with, voronoi_cells
+from ilt.io.frames import FrameError, FrameScratch, load_frame, open_hdr_directory
+from ilt.parallel.chunks import beam_executor, chunks, run_chunks
+from ilt.isf.fine import (
+    COEFFICIENTS_FILE,
+    DEFAULT_DEGREE,
+    FINE_DIR,
+    CellGeometry,
+    FineAccumulator,
+    basis_terms,
+    fit_operator,
+    frames_inputs,
+    write_fine,
+)
+from ilt.io.exr import write_exr
+from ilt.isf.directory import CELLS_FILE, SCALES_FILE, T_FILE, write_isf
+from ilt.io.manifest import (
+    MANIFEST,
+    fingerprint_array,
+    fingerprint_file,
+    read_manifest,
+    save_npy,
+    write_manifest,
+)
+from ilt.io.staged import staged_directory
+from ilt.io.preview import save_png
+from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
+from ilt.spots.stage import SUM_FILE
+
+log = logging.getLogger(__name__)
+
+SAMPLINGS = ("cell", "point")
+
+
+class BuildError(ValueError):
+    """Spots and frames that do not make an ISF; the message names the file or beam."""
+
+
+def select_beams(beams: list[int], spots, min_separation: float) -> tuple[list[int], list[dict]]:
+    """Indices (into ``beams``) of the spots to keep, and one ``{beam, reason}`` per drop.
+
+    Flagged spots go first; then, in beam order, a spot closer than ``min_separation``
+    pixels to a kept one is dropped as a near-duplicate.
+    """
+    drops, keep = [], []
+    for i, (b, s) in enumerate(zip(beams, spots)):
+        if s.flags:
+            drops.append({"beam": b, "reason": "flagged: " + format_flags(s.flags)})
+        elif not (np.isfinite(s.x) and np.isfinite(s.y)):
+            drops.append({"beam": b, "reason": "no centroid"})
+        else:
+            keep.append(i)
+    xy = np.array([[spots[i].x, spots[i].y] for i in keep]).reshape(-1, 2)
+    # candidates for near-duplicates: pairs closer than min_separation (a k-d tree, not all pairs)
+    close: dict[int, list[int]] = {}
+    for a, b in cKDTree(xy).query_pairs(min_separation) if len(xy) > 1 else ():
+        close.setdefault(max(a, b), []).append(min(a, b))
+    kept: list[int] = []
+    kept_k: set[int] = set()
+    for k, i in enumerate(keep):
+        earlier = [q for q in close.get(k, ()) if q in kept_k]
+        if earlier:
+            d = np.hypot(*(xy[earlier] - xy[k]).T)
+            nearest = int(np.argmin(d))
+            drops.append({"beam": beams[i], "reason": f"near-duplicate: {d[nearest]:.3g} px from beam "
+                                                       f"{beams[keep[earlier[nearest]]]} (< {min_separation:g})"})
+            continue
+        kept.append(i)
+        kept_k.add(k)
+    return kept, sorted(drops, key=lambda d: d["beam"])
+
+
+def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float) -> np.ndarray:
+    """(H, W) bool pixels the scan lights: the sum of all beam frames above ``fraction`` x its
+    median at the spot pixels."""
+    rows = np.clip(np.floor(centroids[:, 1] + 0.5).astype(int), 0, frame_sum.shape[0] - 1)
+    cols = np.clip(np.floor(centroids[:, 0] + 0.5).astype(int), 0, frame_sum.shape[1] - 1)
+    return frame_sum > fraction * np.median(frame_sum[rows, cols])
+
+
+def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):
+    """Worker: one column of raw T per frame, (m, len(beams)) float64, and below it, with
+    a fine ``degree``, the frame's (K m) raw fine-operator coefficients (:mod:`ilt.isf.fine`).
+
+    sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
+    the (m,) flat pixel indices of the samples (point sampling). files: each beam's EXR,
+    or None for a beam whose frame ``scratch`` (:class:`ilt.io.frames.FrameScratch`) keeps.
+    """
+    operator, cells = _cached_operator(sampler, m, degree) if isinstance(sampler, (str, Path)) else (None, None)
+    out = np.empty((m if operator is None else operator.shape[0] + (m if degree else 0), len(files)))
+    frame = np.empty(shape)  # one float64 buffer for the chunk: the product reads it as is
+    kept = np.empty(shape, np.float32) if scratch is not None else None
+    fd = scratch.open() if scratch is not None and None in files else None
+    try:
+        for k, (beam, path) in enumerate(zip(beams, files)):
+            if path is None:
+                np.copyto(frame, scratch.read(fd, beam, kept))
+            else:
+                load_frame(path, shape, out=frame)
+            if operator is None:
+                out[:, k] = frame.ravel()[sampler]
+            elif degree:
+                out[:operator.shape[0], k] = integrate_with(frame, operator)
+                out[operator.shape[0]:, k] = integrate_with(np.square(frame, out=frame), cells)
+            else:
+                out[:, k] = integrate_with(frame, operator)
+    finally:
+        if fd is not None:
+            os.close(fd)
+    return out
+
+
+_OPERATOR_CACHE: dict = {}
+
+
+def _cached_operator(path, m, degree=None):
+    """The cell operator of ``cells.exr`` at ``path`` (with a fine ``degree``, the fine
+    operator's fit stacked below it: one sparse product per frame gives both; a row's
+    sum is the same as alone, so T is the same bit for bit) and the cell operator alone
+    (for the squared frames, which judge each cell's fit), built once per worker process."""
+    from ilt.isf.directory import read_cells
+
+    key = (str(path), os.stat(path).st_mtime_ns, m, degree)
+    if key not in _OPERATOR_CACHE:
+        _OPERATOR_CACHE.clear()
+        labels = read_cells(Path(path), m)
+        cells = cell_operator(labels, m)
+        operator = cells
+        if degree:
+            operator = scipy.sparse.vstack([cells, fit_operator(CellGeometry.from_labels(labels, m), degree)],
+                                           format="csr")
+        _OPERATOR_CACHE[key] = operator, cells
+    return _OPERATOR_CACHE[key]
+
+
+def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str | os.PathLike,
+              sampling: str = "cell", min_separation: float = 2.0, lit_fraction: float = 1e-3,
+              max_cell_radius: float | None = None, executor=None, workers: int | None = None,
+              chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
+              fine_degree: int | None = DEFAULT_DEGREE) -> dict:
+    """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
+
+    Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
+    the raw T (frame units x frame pixels), samples.csv (plan beam, centroid x, y in
+    full-frame pixels), cells.exr ((H, W) row of T per pixel of the frame grid, -1
+    outside, with the grid's pixel mapping; cell sampling only), T.png and
+    manifest.json (plan layout, frame shape, pixel mapping, kept beams, every drop with
+    its reason). ``frame_cache``: the scratch directory in which a preceding centroids
+    run over the same HDR directory kept its decoded frames (:func:`centroids_and_isf`,
+    :class:`ilt.io.frames.FrameScratch`); those it recorded are read instead of the EXR
+    files, and the frames file is removed once read. The caller removes the directory.
+    ``min_separation`` is in full-frame pixels; ``max_cell_radius`` in
+    frame-grid pixels, by default 2 x the median distance between neighbouring kept spots.
+    ``fine_degree`` (cell sampling): also write ``fine/``, the fine operator of
+    full-resolution bounce images (:mod:`ilt.isf.fine`), fitted in the same pass over the
+    frames; None skips it.
+    """
+    if sampling not in SAMPLINGS:
+        raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
+    spots_dir = Path(spots_dir)
+    hdr = open_hdr_directory(hdr_dir)
+    beams, spots = read_spots(spots_dir / SPOTS_FILE)
+    for b in beams:
+        if b >= hdr.m:
+            raise BuildError(f"{spots_dir / SPOTS_FILE}: beam {b} has no image in {hdr.path} ({hdr.m} beams)")
+    kept, drops = select_beams(beams, spots, min_separation)
+    for d in drops:
+        log.warning("dropping beam %d: %s", d["beam"], d["reason"])
+    if len(kept) < 2:
+        raise BuildError(f"{spots_dir / SPOTS_FILE}: {len(kept)} usable spots; an ISF needs at least 2")
+    plan = [beams[i] for i in kept]
+    centroids = np.array([[spots[i].x, spots[i].y] for i in kept])
+    on_grid = hdr.mapping.to_grid(centroids)
+    m = len(plan)
+    labels = None
+    if sampling == "cell":
+        frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
+        lit = None if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction)
+        if max_cell_radius is None:
+            nn = cKDTree(on_grid).query(on_grid, k=2)[0][:, 1]
+            max_cell_radius = 2.0 * float(np.median(nn))
+        # the pool idles meanwhile: the queries take its cores
+        labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius, threads=workers or -1)
+        empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
+        if empty.size:
+            raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
+                             f"{centroids[empty[0]].round(2).tolist()}); lower --lit-fraction")
+    else:
+        px = np.floor(on_grid + 0.5).astype(np.int64)
+        outside = np.flatnonzero((px < 0).any(axis=1) | (px[:, 0] >= hdr.frame_shape[1]) | (px[:, 1] >= hdr.frame_shape[0]))
+        if outside.size:
+            raise BuildError(f"beam {plan[outside[0]]}: spot at {centroids[outside[0]].round(2).tolist()} "
+                             f"is outside the {hdr.frame_shape[1]} x {hdr.frame_shape[0]} frame")
+        sampler = px[:, 1] * hdr.frame_shape[1] + px[:, 0]
+        fine_degree = None
+    if fine_degree is not None:
+        terms = basis_terms(fine_degree)
+    with staged_directory(out, force=force) as tmp:
+        if labels is not None:
+            write_exr(tmp / CELLS_FILE, labels.astype(np.float32), channels=["label"],
+                      attributes={"ilt:quantity": "row of T per pixel, -1 outside every cell",
+                                  **hdr.mapping.attributes()})
+            sampler = str(tmp / CELLS_FILE)
+        # a frame the centroids pass kept when there is one (it may have run out of disk)
+        scratch = FrameScratch(Path(frame_cache), hdr.frame_shape) if frame_cache is not None else None
+        kept = scratch.kept() if scratch is not None else frozenset()
+        tasks = [(c, [None if b in kept else hdr.files[b] for b in c], hdr.frame_shape, sampler, m,
+                  scratch if kept else None, fine_degree) for c in chunks(plan, chunk)]
+        # T's columns go straight into the memory-mapped T.npy, divided by their norms as
+        # they arrive (elementwise, so the same floats as raw / scales on the whole); the
+        # fine coefficients into a float32 memory map, block by block (FineAccumulator):
+        # nothing m x m is held in memory (was about 40 m^2 bytes)
+        T = np.lib.format.open_memmap(tmp / T_FILE, mode="w+", dtype=np.float64, shape=(m, m))
+        scales = np.empty(m)
+        accumulator = None
+        if fine_degree:
+            (tmp / FINE_DIR).mkdir()
+            accumulator = FineAccumulator(
+                np.lib.format.open_memmap(tmp / FINE_DIR / COEFFICIENTS_FILE, mode="w+", dtype=np.float32,
+                                          shape=(terms, m, m)),
+                CellGeometry.from_labels(labels, m), fine_degree)
+        done = 0
+        with beam_executor(executor, workers) as ex:
+            for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
+                b = block.shape[1]
+                raw = block[:m]
+                norms = scales[done:done + b] = _column_norms(raw)
+                zero = np.flatnonzero(~(norms > 0))
+                if zero.size:
+                    j = done + int(zero[0])
+                    raise BuildError(f"beam {plan[j]} ({hdr.files[plan[j]]}): its image is zero at every sample")
+                T[:, done:done + b] = raw / norms
+                if accumulator is not None:
+                    accumulator.add(done, block[m:-m].reshape(terms, m, b), raw, block[-m:], norms)
+                done += b
+        if kept:  # every kept frame is read: free its disk while the outputs are written
+            _in_background(scratch.path.unlink, missing_ok=True)
+        T.flush()
+        if fine_degree is not None:
+            share = None
+            if accumulator is not None:
+                share = accumulator.finish()
+                accumulator.out.flush()
+                del accumulator
+            write_fine(tmp, fine_degree, T, fingerprint_array(labels), frames_inputs(hdr.path, out), share)
+        fields = {"sampling": sampling, "beams": plan, "drops": drops,
+                  "pixel_mapping": hdr.mapping.as_dict()}
+        manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
+        save_npy(tmp / SCALES_FILE, scales)
+        save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")
+        parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
+                      "max_cell_radius": max_cell_radius, "fine_degree": fine_degree}
+        inputs = {str(spots_dir / SPOTS_FILE): ""}
+        if (spots_dir / MANIFEST).exists():   # the spots' manifest by its hash: what `ilt status` knows a stage by
+            spots_manifest = read_manifest(spots_dir)
+            inputs = {str(spots_dir / SPOTS_FILE): spots_manifest["outputs"].get(SPOTS_FILE, ""),
+                      str(spots_dir / MANIFEST): fingerprint_file(spots_dir / MANIFEST),
+                      **spots_manifest.get("inputs", {})}
+        write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields})
+    return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
+
+
+def _column_norms(raw: np.ndarray) -> np.ndarray:
+    """(b,) 2-norms of the columns of an (m, b) block, the same floats as
+    ``np.linalg.norm`` of the whole (m, m) raw T along axis 0 gives: that sums each
+    column's squares in row order, one row after another, which a running sum along
+    the rows (cumsum) does for any block, where norm on a narrow block sums pairwise."""
+    return np.sqrt(np.cumsum(np.square(raw), axis=0)[-1])
+
+
+def _in_background(function, **kwargs) -> None:
+    """Run ``function(**kwargs)`` in a daemon thread and go on (for a system call that
+    releases the GIL: removing a file of m frames takes the kernel some 0.1 s)."""
+    threading.Thread(target=function, kwargs=kwargs, daemon=True).start()
+
+
+def centroids_and_isf(hdr_dir: str | os.PathLike, spots_out: str | os.PathLike, isf_out: str | os.PathLike,
+                      params=None, dark=None, executor=None, workers: int | None = None, progress=None,
+                      force: bool = False, **options) -> tuple[dict, dict]:
+    """``ilt centroids`` then ``ilt build-isf`` on one HDR directory, decoding every EXR
+    once: the centroids pass keeps each decoded frame (raw float32,
+    :class:`ilt.io.frames.FrameScratch`) in a scratch directory beside ``isf_out``
+    (m x H x W x 4 bytes of disk, removed at the end; memory still holds a few frames
+    per worker), which build-isf reads back. With a
+    ``dark`` frame (subtracted for centroids only) the frames are read twice.
+    ``options``: :func:`build_isf`'s. Returns both stages' summaries.
+    """
+    import tempfile
+
+    from ilt.spots.find import SpotParameters
+    from ilt.spots.stage import run_centroids
+
+    parent = Path(isf_out).absolute().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    hdr = open_hdr_directory(hdr_dir)  # headers read once, for both stages
+    with tempfile.TemporaryDirectory(dir=parent, prefix=".frames-") as scratch:
+        cache = scratch if dark is None else None
+        with beam_executor(executor, workers) as pool:  # one pool for both stages
+            spots = run_centroids(hdr, spots_out, params or SpotParameters(), dark=dark, executor=pool,
+                                  workers=workers, progress=progress, force=force, frame_cache=cache)
+            isf = build_isf(hdr, spots_out, isf_out, executor=pool, workers=workers, progress=progress,
+                            force=force, frame_cache=cache, **options)
+    return spots, isf
+
+
+def _read_sum(spots_dir: Path, shape, mapping) -> np.ndarray | None:
+    from ilt.io.frames import read_frame_with_mapping
+
+    path = spots_dir / SUM_FILE
+    if not path.exists():
+        log.warning("%s: missing; every pixel counts as lit", path)
+        return None
+    try:
+        image, own = read_frame_with_mapping(path, shape)
+    except FrameError as exc:
+        raise BuildError(str(exc)) from None
+    if own is not None and own != mapping:
+        raise BuildError(f"{path}: spots were found on frames mapped as {own.as_dict()}, these frames are "
+                         f"{mapping.as_dict()}; run 'ilt centroids' on the same HDR directory")
+    return image.astype(np.float64)
+
+
+__all__ = ["build_isf", "centroids_and_isf", "select_beams", "lit_mask", "sample_like", "BuildError", "SAMPLINGS"]
+
+
+def sample_like(isf, frames: np.ndarray) -> np.ndarray:
+    """Read frames the way the ISF reads photos: integrated over its cells, or at its samples.
+
+    frames: (H, W) or (N, H, W). Returns (m,) or (N, m) float64. Used to turn a
+    simulator's true n-bounce frames into the truth a decomposition is measured against.
+    """
+    from ilt.isf.cells import integrate
+    from ilt.isf.layout import sample_frame
+
+    frames = np.asarray(frames)
+    stack = frames[None] if frames.ndim == 2 else frames
+    if isf.cells is not None:
+        out = np.stack([integrate(f, isf.cells, isf.m) for f in stack])
+    else:
+        out = np.stack([sample_frame(f, isf.grid_samples) for f in stack])
+    return out[0] if frames.ndim == 2 else out

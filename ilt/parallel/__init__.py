@@ -1,0 +1,19 @@
+"""Where per-beam work runs: this machine's process pool or a Dask cluster.
+
+``pool`` (a fork-server process pool, one BLAS thread per worker), ``cluster`` (a
+dask.distributed executor behind the same seam; Dask is imported only when a scheduler
+is given), ``chunks`` (beams in chunks over either, with one-line errors naming the
+beams a lost worker held), ``memory`` (the memory this machine has free).
+"""
+
+import lazy_loader
+
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "chunks": ["WorkerError", "beam_executor", "chunks", "run_chunks"],
+        "cluster": ["ClusterExecutor", "WorkerOSError", "executor_for"],
+        "memory": ["available_memory"],
+        "pool": ["process_pool"],
+    },
+)

@@ -1,0 +1,334 @@
+"""The per-beam stages and the compressed solver on a Dask cluster (``--scheduler``;
+docs/cluster.md).
+
+One seam: :func:`executor_for` turns a scheduler address into the
+``concurrent.futures.Executor`` that merge, centroids and build-isf take as their
+``executor=`` argument, and ``compressed`` for its blocks
+(:func:`ilt.transport.compressed.compressed_operator`, reading T from its memory-mapped file),
+or None, the default, under which they run on a process pool (the solver: threads)
+of this machine (:mod:`ilt.parallel.pool`) and nothing of Dask is imported.
+
+Workers receive paths and beam ranges, never frames; what a task returns (a beam's
+summary, a chunk's spots or columns of T) comes back to this process, which writes
+every stage file but the merged EXRs, written by the merge workers into the staged
+output directory: the workspace (capture/, hdr/, the frame scratch of ``ilt run``)
+must be on storage every worker sees at the same path. The scheduler is a runtime
+option like ``--workers``: no stage fingerprint or parameter depends on it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import os
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+log = logging.getLogger(__name__)
+
+#: the environment variable Dask itself reads for the scheduler's address
+ENV = "DASK_SCHEDULER_ADDRESS"
+#: ``--scheduler local``: a LocalCluster on this machine
+LOCAL = "local"
+#: seconds to wait for the scheduler before giving up
+CONNECT_TIMEOUT = 10.0
+
+
+class ClusterError(ConnectionError):
+    """The scheduler cannot be reached, or Dask is not installed: one line naming the
+    address (an OSError, so that the CLI reports it in one line, exit 1)."""
+
+
+class WorkerOSError(OSError):
+    """An OSError a task raised on a Dask worker (most often a path that worker does not
+    see: a machine without the shared storage), re-raised there with the worker's
+    address and name added, one line: ``PATH: ... (on the Dask worker tcp://...)``."""
+
+
+class SchedulerLost(ClusterError):
+    """The connection to the scheduler was lost mid-stage (the scheduler stopped, or its
+    machine or the network went away): Dask cancels every task of the client, and the
+    stage fails with this one line naming the scheduler's address (an OSError: exit 1;
+    the staged output directory is removed, as on any error)."""
+
+
+class ClusterLost(cf.BrokenExecutor):
+    """A task the cluster gave up on (its workers kept dying: Dask's KilledWorker after
+    ``distributed.scheduler.allowed-failures`` retries): :func:`ilt.parallel.chunks.run_chunks`
+    turns it into a WorkerError naming the beams. (A lost scheduler is
+    :class:`SchedulerLost`.)"""
+
+
+def scheduler_address(scheduler: str | None) -> str | None:
+    """``scheduler`` when given, else ``$DASK_SCHEDULER_ADDRESS`` when set, else None."""
+    scheduler = (scheduler or "").strip() or os.environ.get(ENV, "").strip()
+    return scheduler or None
+
+
+class ClusterExecutor(cf.Executor):
+    """A dask.distributed ``ClientExecutor`` (``pure=False``: every submission a task of
+    its own) whose futures fail with :class:`ClusterLost`, a ``BrokenExecutor``, when
+    the cluster loses a task for good, with :meth:`lost` saying which and how, as
+    :class:`ilt.parallel.pool.BeamPool` does for a dead process. A worker that dies is
+    otherwise Dask's business: its tasks run again on the others.
+
+    A lost scheduler fails every future it handed out with :class:`SchedulerLost`, at
+    once: Dask cancels the tasks it knows of when the connection drops, but a task
+    submitted while it tries to reconnect is never cancelled, and waiting for it hung
+    ``ilt merge`` in one of four runs of tests/test_cluster.py's stopped-scheduler test."""
+
+    #: consecutive chunks of a stage in one task (:func:`ilt.parallel.chunks.run_chunks`): a task
+    #: costs a round trip through the scheduler, a few ms, against 80 ms for a chunk of
+    #: 16 small frames
+    chunks_per_task = 4
+
+    def __init__(self, client, directory: str | None = None, address: str | None = None):
+        self.client = client
+        #: the scheduler's address, named when it goes away
+        self.address = address or getattr(getattr(client, "scheduler", None), "address", None) or "?"
+        self.directory = directory or os.getcwd()
+        self._inner = client.get_executor(pure=False)
+        self._lost: list[tuple[cf.Future, str]] = []
+        #: whether the connection to the scheduler was lost (every task cancelled)
+        self.scheduler_lost = False
+        self._outstanding: set[cf.Future] = set()
+        self._lock = threading.Lock()
+
+    def _connected(self) -> bool:
+        return not self.scheduler_lost and getattr(self.client, "status", "running") == "running"
+
+    def _fail_outstanding(self) -> None:
+        """The scheduler is gone: every future not done fails with SchedulerLost."""
+        self.scheduler_lost = True
+        with self._lock:
+            waiting = list(self._outstanding)
+        for outer in waiting:
+            try:
+                outer.set_exception(SchedulerLost(
+                    f"{self.address}: the connection to the Dask scheduler was lost mid-stage (it stopped, or "
+                    "its machine or the network went away); the stage's unfinished beams were cancelled and "
+                    "nothing was written: start the scheduler again and re-run"))
+            except cf.InvalidStateError:  # done meanwhile
+                pass
+
+    def submit(self, fn, /, *args, **kwargs) -> cf.Future:
+        outer: cf.Future = cf.Future()
+        with self._lock:
+            self._outstanding.add(outer)
+        outer.add_done_callback(self._forget)
+        if not self._connected():
+            self._fail_outstanding()
+            return outer
+        inner = self._inner.submit(in_directory, self.directory, fn, *args, **kwargs)
+
+        def done(f: cf.Future) -> None:
+            if outer.done():
+                return
+            try:
+                if f.cancelled():   # not by us (then outer is done): the scheduler went away
+                    self._fail_outstanding()
+                elif (exc := f.exception()) is None:
+                    outer.set_result(f.result())
+                elif _is_lost(exc):
+                    how = f"was lost by the cluster ({type(exc).__name__}: {exc})"
+                    self._lost.append((outer, how))
+                    outer.set_exception(ClusterLost(how))
+                else:
+                    outer.set_exception(exc)
+            except cf.InvalidStateError:  # cancelled meanwhile
+                pass
+
+        outer.add_done_callback(lambda o: o.cancelled() and inner.cancel())
+        inner.add_done_callback(done)
+        if not self._connected():   # lost while this task was being sent: Dask will not cancel it
+            self._fail_outstanding()
+        return outer
+
+    def _forget(self, outer: cf.Future) -> None:
+        with self._lock:
+            self._outstanding.discard(outer)
+
+    def lost(self) -> list[tuple[cf.Future, str]]:
+        return list(self._lost)
+
+    def worker_threads(self) -> int:
+        """Tasks the cluster's workers run at once now (their threads, all told)."""
+        return sum(self.client.nthreads().values())
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._inner.shutdown(wait=wait and not cancel_futures)
+
+
+def in_directory(directory: str, fn, /, *args, **kwargs):
+    """On a worker: ``fn(*args, **kwargs)`` in the submitting process's current
+    directory, so that the relative paths a stage passes mean what they mean there
+    (the storage shared at the same path on every machine). A :class:`WorkerOSError`
+    naming the directory and this worker when the worker does not see it; any OSError
+    of the task (an input this worker cannot open) comes back as a WorkerOSError, its
+    message and this worker's address."""
+    if os.getcwd() != directory:
+        try:
+            os.chdir(directory)
+        except OSError:
+            raise WorkerOSError(f"{directory}: not found on the Dask worker {_this_worker()}: every worker must "
+                                "see the workspace at the same path (docs/cluster.md)") from None
+    try:
+        return fn(*args, **kwargs)
+    except WorkerOSError:
+        raise
+    except OSError as exc:
+        raise WorkerOSError(f"{_one_line(exc)} ({_on_this_worker()})") from None
+    except Exception as exc:
+        # ilt's own one-line error for a file it could not open (CaptureError, raised
+        # from the FileNotFoundError): the same class, the worker added to its message
+        if _from_os_error(exc) and len(exc.args) == 1 and isinstance(exc.args[0], str):
+            exc.args = (f"{exc.args[0]} ({_on_this_worker()})",)
+        raise
+
+
+def _on_this_worker() -> str:
+    return (f"on the Dask worker {_this_worker()}: every worker must see the workspace at the same path, "
+            "docs/cluster.md")
+
+
+def _from_os_error(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised while handling an OSError (``raise ... from None`` too)."""
+    seen = set()
+    cause = exc.__cause__ or exc.__context__
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, OSError):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
+def _this_worker() -> str:
+    """On a worker: its address, with its name when that says more and the host
+    (``tcp://10.0.0.5:40123 (node1-3, node1)``)."""
+    import socket
+
+    host = socket.gethostname()
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+        address, name = str(worker.address), str(worker.name)
+    except Exception:  # (not in a worker task: the host is all there is to say)
+        return f"on {host}"
+    extra = [x for x in (name if name != address and not name.isdigit() else "", host) if x]
+    return f"{address} ({', '.join(extra)})"
+
+
+def _one_line(exc: OSError) -> str:
+    """``exc``'s message on one line, naming its file when the message does not."""
+    text = " ".join(str(exc).split())
+    filename = getattr(exc, "filename", None)
+    if filename is not None and str(filename) not in text:
+        text = f"{filename}: {text}"
+    return text
+
+
+def _is_lost(exc: BaseException) -> bool:
+    from distributed.comm.core import CommClosedError
+    from distributed.scheduler import KilledWorker
+
+    return isinstance(exc, (KilledWorker, CommClosedError))
+
+
+def _one_thread_plugin():
+    """A worker plugin: one OpenImageIO and OpenCV thread per Dask worker (as in each
+    process of ilt's own pools), so that N single-threaded workers use N cores."""
+    from distributed import WorkerPlugin
+
+    class OneThread(WorkerPlugin):
+        name = "ilt-one-thread"
+
+        def setup(self, worker):
+            from ilt.io.exr import one_thread_per_process
+
+            one_thread_per_process()
+
+    return OneThread()
+
+
+@contextmanager
+def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[cf.Executor | None]:
+    """The executor of the per-beam stages for ``scheduler``.
+
+    None (and ``$DASK_SCHEDULER_ADDRESS`` unset): yields None, the stages' own process
+    pool, without importing Dask. ``"local"``: a ``distributed.LocalCluster`` on this
+    machine, ``workers`` (default: every core) single-threaded worker processes, closed
+    at the end. An address (``tcp://host:8786``): a Client of that scheduler's workers,
+    closed at the end (the cluster keeps running). :class:`ClusterError` when the
+    scheduler does not answer within :data:`CONNECT_TIMEOUT` seconds; nothing has been
+    written then. The dashboard's address is logged at INFO.
+    """
+    address = scheduler_address(scheduler)
+    if address is None:
+        yield None
+        return
+    try:
+        import distributed
+    except ImportError:
+        raise ClusterError(f"{address}: the scheduler needs dask.distributed: pip install 'ilt[cluster]'") from None
+    _quiet_dask()
+    cluster = executor = None
+    if address == LOCAL:
+        n = workers or os.cpu_count() or 1
+        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                           dashboard_address=":0", silence_logs=logging.CRITICAL)
+        client = distributed.Client(cluster)
+        where = f"a LocalCluster of {n} worker processes"
+    else:
+        if "://" not in address:
+            address = f"tcp://{address}"
+        try:
+            client = distributed.Client(address, timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError) as exc:
+            raise ClusterError(f"{address}: no Dask scheduler answered within {CONNECT_TIMEOUT:g} s "
+                               f"({type(exc).__name__}); start one with 'dask scheduler', or check "
+                               f"--scheduler / [cluster] scheduler / ${ENV}") from None
+        where = f"the Dask scheduler at {address}"
+    try:
+        client.register_plugin(_one_thread_plugin())
+        dashboard = _dashboard(client)
+        n = len(client.scheduler_info().get("workers", {}))
+        log.info("tasks run on %s (%d workers)%s", where, n, f"; dashboard {dashboard}" if dashboard else "")
+        if n == 0:
+            log.warning("%s has no workers yet: the stages wait for some ('dask worker %s')", address, address)
+        executor = ClusterExecutor(client, address=client.scheduler.address if cluster is not None else address)
+        yield executor
+    finally:
+        quiet = executor is not None and executor.scheduler_lost and not logging.getLogger().isEnabledFor(logging.DEBUG)
+        if quiet:
+            # closing a client that is trying to reconnect logs Dask's traceback of the
+            # cancelled attempt (at ERROR): SchedulerLost has said it in one line
+            logging.disable(logging.CRITICAL)
+        try:
+            client.close()
+        finally:
+            if quiet:
+                logging.disable(logging.NOTSET)
+        if cluster is not None:
+            cluster.close()
+
+
+def _quiet_dask() -> None:
+    """Dask's own INFO lines (workers joining, connections closing) only with ``ilt -v``:
+    ilt logs what matters (where the stages run, the dashboard). Worker failures come
+    back as the task's exception, which ilt reports in one line."""
+    if not logging.getLogger().isEnabledFor(logging.DEBUG):
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+
+
+def _dashboard(client) -> str | None:
+    """The dashboard's address, None when the scheduler serves none (no bokeh)."""
+    try:
+        info = client.scheduler_info()
+        if "dashboard" not in info.get("services", {}):
+            return None
+        return client.dashboard_link
+    except Exception:  # (an optional nicety: never a reason to stop)
+        return None

@@ -1,0 +1,14 @@
+"""The HTML report of a workspace: spots (Fig. 4), T and Cn T (Fig. 5), bounce
+images (Fig. 6), diagnostics and capture statistics.
+
+``page`` (the page and its figures).
+"""
+
+import lazy_loader
+
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "page": ["fig5_matrices", "write_report"],
+    },
+)

@@ -1,0 +1,526 @@
+"""``ilt run``: the whole pipeline in a workspace, skipping what is up to date.
+
+capture -> merge -> centroids -> build-isf -> photos -> decompose, each stage a
+directory of the workspace (:mod:`ilt.workspace`), each skipped when its run record
+matches its parameters and inputs (:mod:`ilt.io.stage`). The config is the rig TOML of
+``ilt capture`` (docs/capture.md) plus optional sections for the later stages, whose
+keys are the long options of the stage commands (:mod:`ilt.workspace.options`, docs/workspace.md)::
+
+    [merge]      margin = 0.05        # ilt merge --margin
+    [centroids]  threshold = 0.2      # ilt centroids --threshold
+    [build-isf]  sampling = "cell"    # ilt build-isf --sampling
+    [photos]     sim = ["flashlight"] # simulated rig: photos under these illuminations
+                 files = ["a.exr"]    # and/or EXR photos (paths relative to the config)
+    [decompose]  bounces = 8          # ilt decompose --bounces
+    [cluster]    scheduler = "tcp://head:8786"  # ilt run --scheduler (docs/cluster.md)
+
+Photos on the simulated rig are *captured*: the simulated camera shoots each photo's
+bracket of DNG files under the illumination (same bracket, sensor and noise as the
+beams) and it is merged with the beams' merge options into ``photos/<kind>.exr``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+import tomllib
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ilt.capture.config import ConfigError, RigConfig, parse_config
+from ilt.capture.loop import capture
+from ilt.io.manifest import LOG_NAME, StageError, fingerprint_file, write_manifest
+from ilt.io.atomic import atomic_path
+from ilt.io.staged import staged_directory
+from ilt.io.stage import (
+    DONE,
+    MISSING,
+    STALE,
+    StageState,
+    changed_outputs,
+    fingerprint_input,
+    input_evidence,
+    read_record,
+    run_stage,
+    stage_state,
+    write_record,
+)
+from ilt.workspace.options import BUILD_ISF, CENTROIDS, DECOMPOSE, MERGE, StageOption
+from ilt.io.workspace_dirs import STAGE_DIRS, Workspace
+
+log = logging.getLogger(__name__)
+
+#: options of a stage command that change nothing in its output (not fingerprinted);
+#: the [cluster] scheduler is one too, kept out of the stage sections altogether
+RUNTIME_KEYS = ("workers", "scheduler")
+
+
+@dataclass
+class RunConfig:
+    """A rig config with the options of every later stage (their keyword names, :mod:`ilt.workspace.options`)."""
+
+    path: Path
+    text: str
+    rig: RigConfig
+    merge: dict = field(default_factory=dict)
+    centroids: dict = field(default_factory=dict)
+    build_isf: dict = field(default_factory=dict)
+    decompose: dict = field(default_factory=dict)
+    photo_kinds: tuple[str, ...] = ()
+    photo_files: tuple[Path, ...] = ()
+    #: [cluster] scheduler: where the per-beam stages run (ilt.parallel.cluster); None: here
+    scheduler: str | None = None
+
+
+def stage_options(options: dict[str, StageOption], section: dict, where: str) -> dict:
+    """A config section as keyword options of a stage: keys are the stage's long options
+    (``read-noise`` or ``read_noise``), their values checked as the command line checks
+    them (ConfigError naming the file, section and key); unspecified ones take their
+    default."""
+    if not isinstance(section, dict):
+        raise ConfigError(f"{where}: must be a table")
+    by_key = {o.key: o.name for o in options.values()}
+    out = {o.name: o.default_value() for o in options.values()}
+    for key, value in section.items():
+        name = by_key.get(key.replace("-", "_"))
+        if name is None:
+            raise ConfigError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(by_key))})")
+        try:
+            options[name].check(value, where)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        out[name] = value
+    return out
+
+
+def load_run_config(path: str | os.PathLike) -> RunConfig:
+    """Read a rig TOML with its stage sections. ConfigError names the file and key."""
+    from ilt.sim import ILLUMINATIONS
+
+    path = Path(path)
+    text = path.read_text()
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    rig = parse_config(raw, str(path))
+    photos = raw.get("photos", {})
+    kinds = tuple(photos.get("sim", ILLUMINATIONS if rig.camera.backend == "sim" else ()))
+    unknown = set(photos) - {"sim", "files"}
+    if unknown:
+        raise ConfigError(f"{path}: [photos] unknown key {min(unknown)!r} (known: files, sim)")
+    for k in kinds:
+        if k not in ILLUMINATIONS:
+            raise ConfigError(f"{path}: [photos] sim: {k!r} unknown (known: {', '.join(ILLUMINATIONS)})")
+    if kinds and rig.camera.backend != "sim":
+        raise ConfigError(f"{path}: [photos] sim needs the simulated camera (backend = 'sim'); use files")
+    return RunConfig(
+        path, text, rig,
+        merge=stage_options(MERGE, raw.get("merge", {}), f"{path}: [merge]"),
+        centroids=stage_options(CENTROIDS, raw.get("centroids", {}), f"{path}: [centroids]"),
+        build_isf=stage_options(BUILD_ISF, raw.get("build-isf", {}), f"{path}: [build-isf]"),
+        decompose=stage_options(DECOMPOSE, raw.get("decompose", {}), f"{path}: [decompose]"),
+        photo_kinds=kinds,
+        photo_files=tuple(path.parent / f for f in photos.get("files", ())),
+        scheduler=_cluster_scheduler(raw.get("cluster", {}), f"{path}: [cluster]"),
+    )
+
+
+def _cluster_scheduler(section, where: str) -> str | None:
+    """The [cluster] table: ``scheduler = "local" | "tcp://host:port"`` (a runtime
+    option: no stage's parameters depend on it)."""
+    if not isinstance(section, dict):
+        raise ConfigError(f"{where}: must be a table")
+    if unknown := set(section) - {"scheduler"}:
+        raise ConfigError(f"{where}: unknown key {min(unknown)!r} (known: scheduler)")
+    scheduler = section.get("scheduler")
+    if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
+        raise ConfigError(f"{where}: scheduler must be \"local\" or an address such as \"tcp://host:8786\"")
+    return scheduler.strip() if scheduler else None
+
+
+def fingerprinted(options: dict) -> dict:
+    return {k: v for k, v in options.items() if k not in RUNTIME_KEYS}
+
+
+# ---------------------------------------------------------------------- the stages
+
+
+def capture_parameters(rig: RigConfig) -> dict:
+    """What a capture depends on: the beams, the bracket, the dark frame, the camera."""
+    d = rig.as_dict()
+    return {k: d[k] for k in ("plan", "bracket", "dark", "camera")}
+
+
+def merge_options(options: dict):
+    from ilt.hdr.merge import NoiseModel
+    from ilt.hdr.stages import MergeOptions
+
+    return MergeOptions(NoiseModel(options["gain"], options["read_noise"]), None, options["margin"],
+                        options["color"], options["compression"])
+
+
+@dataclass
+class Stage:
+    """One stage of a run: its directory, parameters, input directories/files and maker."""
+
+    name: str
+    directory: Path
+    parameters: dict
+    inputs: dict[str, Path]
+    make: object = None
+
+
+def no_progress(length: int, label: str):
+    """The default ``progress`` of a run: ``update(n)`` that shows nothing."""
+    return contextlib.nullcontext(lambda n=1: None)
+
+
+def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=None) -> list[Stage]:
+    """The stages of a run in order (photos and decompose only when there are photos).
+
+    ``progress(length, label)``: a context manager yielding ``update(n)``, called with the
+    beams done as each per-beam stage goes (``ilt run`` draws a bar on a terminal, a
+    line every tenth in a log). ``executor``: where merge, centroids and build-isf
+    run their beams and the compressed solver its blocks (a cluster's,
+    :func:`ilt.parallel.cluster.executor_for`), else each stage's process pool of its
+    ``workers`` (the solver: threads of this process).
+    """
+    from ilt.isf.build import build_isf
+    from ilt.capture.plan import planned_beams
+    from ilt.decompose.stage import decompose, default_cache_dir
+    from ilt.hdr.stages import merge_capture
+    from ilt.isf.directory import load_isf
+    from ilt.spots.find import SpotParameters
+    from ilt.spots.stage import run_centroids
+
+    d = {name: ws.stage_dir(name) for name in STAGE_DIRS}
+    m, c, b, dec = cfg.merge, cfg.centroids, cfg.build_isf, cfg.decompose
+    spot_params = {k: v for k, v in c.items() if k != "workers"}
+    if spot_params.get("roi") is not None:
+        spot_params["roi"] = tuple(float(v) for v in spot_params["roi"])
+    isf_params = {k: v for k, v in b.items() if k not in ("workers", "no_fine")}
+    if b.get("no_fine"):
+        isf_params["fine_degree"] = None
+
+    # centroids keeps every decoded frame for build-isf (ilt.io.frames.FrameScratch), so a
+    # run decodes each EXR once. Only frames kept by this run are ever read back:
+    # run_pipeline removes the directory before the first stage and after the last, and
+    # a failed centroids stage ends the run before build-isf
+    scratch = ws.root / SCRATCH_DIR
+    beams = planned_beams(cfg.rig.plan)
+
+    def make_merge():
+        with progress(beams, "merge") as update:
+            merge_capture(d["capture"], d["merge"], merge_options(m), executor=executor, workers=m["workers"],
+                          force=True, parameters=fingerprinted(m), progress=update)
+
+    def make_centroids():
+        _remove_scratch(ws)
+        scratch.mkdir(parents=True)
+        with progress(beams, "centroids") as update:
+            run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params), executor=executor,
+                          workers=c["workers"], force=True, frame_cache=scratch, progress=update)
+
+    def make_build_isf():
+        try:
+            with progress(beams, "build-isf") as update:
+                build_isf(d["merge"], d["centroids"], d["build-isf"], executor=executor, workers=b["workers"],
+                          force=True, frame_cache=scratch if scratch.is_dir() else None, progress=update,
+                          **isf_params)
+        finally:
+            _remove_scratch(ws)
+
+    def make_decompose():
+        with staged_directory(d["decompose"], force=True) as tmp:
+            decompose(load_isf(d["build-isf"], mmap=True), photo_paths(ws, cfg), tmp, n_bounces=dec["n_bounces"],
+                      tol=dec["tol"], cache_dir=default_cache_dir(), force=True, samples_only=dec["samples_only"],
+                      executor=executor)
+            write_manifest(tmp, "decompose", fingerprinted(dec))
+
+    stages = [
+        Stage("capture", d["capture"], capture_parameters(cfg.rig), {}),
+        Stage("merge", d["merge"], fingerprinted(m), {"capture": d["capture"]}, make_merge),
+        Stage("centroids", d["centroids"], fingerprinted(c), {"hdr": d["merge"]}, make_centroids),
+        Stage("build-isf", d["build-isf"], fingerprinted(b), {"hdr": d["merge"], "spots": d["centroids"]},
+              make_build_isf),
+    ]
+    if cfg.photo_kinds:
+        stages.append(Stage("photos", d["photos"], {"sim": list(cfg.photo_kinds), **capture_parameters(cfg.rig),
+                                                     "merge": fingerprinted(m)}, {},
+                            lambda: capture_photos(cfg.rig, cfg.photo_kinds, d["photos"], merge_options(m))))
+    if cfg.photo_kinds or cfg.photo_files:
+        inputs = {"isf": d["build-isf"]}
+        if cfg.photo_kinds:
+            inputs["photos"] = d["photos"]
+        inputs.update({f"file {p.name}": p for p in cfg.photo_files})
+        stages.append(Stage("decompose", d["decompose"], fingerprinted(dec), inputs, make_decompose))
+    return stages
+
+
+#: where a run keeps decoded frames between centroids and build-isf (removed after)
+SCRATCH_DIR = ".frames-scratch"
+
+
+def _remove_scratch(ws: Workspace) -> None:
+    import shutil
+
+    shutil.rmtree(ws.root / SCRATCH_DIR, ignore_errors=True)
+
+
+def photo_paths(ws: Workspace, cfg: RunConfig) -> list[Path]:
+    return [ws.stage_dir("photos") / f"{k}.exr" for k in cfg.photo_kinds] + list(cfg.photo_files)
+
+
+def capture_photos(rig: RigConfig, kinds, out: Path, options) -> Path:
+    """Shoot each photo's DNG bracket with the simulated camera and merge it (atomically).
+
+    ``out/raw/<kind>/`` holds the bracket (frames, dark, manifest.json as a beam's);
+    ``out/<kind>.exr`` the merged photo, in the HDR frames' pixel grid.
+    """
+    from ilt.capture.camera import SimCamera, sim_sensor
+    from ilt.capture.plan import make_plan
+    from ilt.io.beams import FrameRecord, write_beam_manifest
+    from ilt.hdr.stages import merge_beam
+    from ilt.sim.render import render_scene
+    from ilt.sim.sensor import write_dng
+
+    c = rig.camera
+    scene = render_scene(c.scene, beams=make_plan(rig.plan).m, px_per_beam=c.px_per_beam, rows=c.rows, spot=c.spot)
+    sensor = sim_sensor(scene)
+    with staged_directory(out, force=True) as tmp:
+        for kind in kinds:
+            radiance = np.zeros((sensor.height, sensor.width))
+            h, w = scene.frame_shape
+            radiance[:h, :w] = scene.photo(kind)[0] * c.radiance_scale
+            lit = {"on": True}
+            camera = SimCamera(lambda radiance=radiance, lit=lit: radiance if lit["on"] else np.zeros_like(radiance),
+                               lambda p, r, t, f, rng: write_dng(p, r, t, f, sensor, rng), sensor.model,
+                               c.seed + zlib.crc32(kind.encode()))
+            bracket = tmp / "raw" / kind
+            bracket.mkdir(parents=True)
+            frames = []
+            for k, e in enumerate(rig.bracket.exposures):
+                camera.shoot(bracket / f"frame-{k:02d}.dng", e, f"photo/{kind}/{k}")
+                frames.append(FrameRecord(f"frame-{k:02d}.dng", str(e.shutter), f"{e.aperture:g}"))
+            dark = None
+            if rig.dark.frames == "longest":
+                lit["on"] = False
+                e = max(rig.bracket.exposures, key=lambda x: x.relative)
+                camera.shoot(bracket / "dark.dng", e, f"photo/{kind}/dark")
+                dark = FrameRecord("dark.dng", str(e.shutter), f"{e.aperture:g}")
+            write_beam_manifest(bracket, frames, dark, extra={"photo": kind})
+            merge_beam(bracket, tmp, options)
+        write_manifest(tmp, "photos", {"sim": list(kinds)})
+    return out
+
+
+# ---------------------------------------------------------------------- run / status
+
+
+def input_fingerprints(stage: Stage) -> dict[str, str]:
+    return {name: fingerprint_input(path) for name, path in stage.inputs.items()}
+
+
+def input_evidences(stage: Stage) -> dict[str, str] | None:
+    """What a stage made by hand must name in its manifest's inputs (:func:`ilt.io.stage.stage_state`);
+    None once the stage has a run record (nothing is hashed then)."""
+    if read_record(stage.directory) is not None:
+        return None
+    return {name: input_evidence(path) for name, path in stage.inputs.items()}
+
+
+#: the state of a stage whose files differ from its manifest's fingerprints
+CHANGED = "changed"
+
+
+def _changed_state(stage: Stage, files: list[str]) -> StageState:
+    shown = ", ".join(files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
+    if stage.name == "capture":
+        fix = f"restore them from a backup, or move {stage.directory} aside and scan again"
+    else:
+        fix = f"remove {stage.directory} and 'ilt run' writes it again"
+    return StageState(stage.name, str(stage.directory), CHANGED,
+                      f"{shown} changed since {stage.name} wrote {'them' if len(files) > 1 else 'it'} ({fix})")
+
+
+def workspace_status(ws: Workspace, cfg: RunConfig, verify: str | None = None) -> list[StageState]:
+    """Each stage's state against ``cfg``; a stage after one that is not done cannot be done.
+
+    ``verify``: "quick" checks that a done stage's files are the ones its manifest
+    fingerprints, re-hashing only those whose size or modification time changed since
+    its run record; "full" re-hashes every file. A stage whose files differ is
+    ``changed`` (the stages after it are judged as usual: they were made from the
+    files as they were).
+    """
+    states: list[StageState] = []
+    by_dir = {}
+    for stage in plan_stages(ws, cfg):
+        blocked = [n for n, p in stage.inputs.items() if p in by_dir and by_dir[p].state not in (DONE, CHANGED)]
+        if blocked:
+            complete = (stage.directory / "manifest.json").exists()
+            s = StageState(stage.name, str(stage.directory), STALE if complete else MISSING,
+                           f"after {', '.join(by_dir[stage.inputs[n]].stage for n in blocked)}" if complete else "")
+        else:
+            try:
+                s = stage_state(stage.directory, stage.name, stage.parameters, input_fingerprints(stage),
+                                input_evidences(stage))
+            except (StageError, OSError) as exc:
+                s = StageState(stage.name, str(stage.directory), MISSING, str(exc))
+        if s.done and verify:
+            files = changed_outputs(stage.directory, full=verify == "full")
+            if files:
+                s = _changed_state(stage, files)
+        states.append(s)
+        by_dir[stage.directory] = s
+    return states
+
+
+def check_unchanged(ws: Workspace, cfg: RunConfig) -> None:
+    """StageError naming the first file of a done stage that no longer matches its
+    manifest: a run must not build on it, nor call it up to date. A stat per file;
+    only files whose size or modification time moved are hashed."""
+    for s in workspace_status(ws, cfg, verify="quick"):
+        if s.state == CHANGED:
+            raise StageError(f"{s.directory}: {s.reason}")
+
+
+#: beside WORKSPACE/rig.toml: the fingerprint of the config `ilt run` last copied there
+INSTALLED = ".rig.toml.installed"
+
+
+def config_differences(old: str, new: str) -> str:
+    """Which sections and keys of two rig TOML texts differ, e.g. "[merge] margin, [plan] count"."""
+    try:
+        a, b = tomllib.loads(old), tomllib.loads(new)
+    except tomllib.TOMLDecodeError:
+        return "it is not valid TOML"
+    out = []
+    for section in sorted(set(a) | set(b)):
+        x, y = a.get(section), b.get(section)
+        if x == y:
+            continue
+        if isinstance(x, (dict, type(None))) and isinstance(y, (dict, type(None))):
+            x, y = x or {}, y or {}
+            keys = sorted(k for k in set(x) | set(y) if x.get(k) != y.get(k))
+            out.append(f"[{section}] {', '.join(keys)}")
+        else:
+            out.append(section)
+    return ", ".join(out) or "comments or layout only"
+
+
+def install_config(ws: Workspace, cfg: RunConfig) -> None:
+    """Keep the run's config as WORKSPACE/rig.toml (what `ilt status` compares against).
+
+    A rig.toml that is not the copy the last `ilt run` made (edited by hand, or written
+    by someone else) is never overwritten: it is moved aside to rig.toml.previous-N,
+    with a warning naming what differs and where it went.
+    """
+    ws.root.mkdir(parents=True, exist_ok=True)
+    marker = ws.root / INSTALLED
+    if ws.config.exists():
+        if ws.config.resolve() == cfg.path.resolve():
+            return
+        old = ws.config.read_text()
+        if old == cfg.text:
+            return
+        ours = marker.exists() and marker.read_text().strip() == fingerprint_file(ws.config)
+        if not ours:
+            k = 1
+            while (aside := ws.config.with_name(f"{ws.config.name}.previous-{k}")).exists():
+                k += 1
+            os.replace(ws.config, aside)
+            log.warning("%s: edited since 'ilt run' copied it (differs from %s in %s); kept as %s",
+                        ws.config, cfg.path, config_differences(old, cfg.text), aside)
+    with atomic_path(ws.config) as tmp:
+        tmp.write_text(cfg.text)
+    with atomic_path(marker) as tmp:
+        tmp.write_text(fingerprint_file(ws.config) + "\n")
+
+
+def check_capture(stage: Stage, force: bool) -> StageState:
+    """The capture's state; StageError when the scan differs from the config and not ``force``."""
+    state = stage_state(stage.directory, "capture", stage.parameters)
+    if state.state == STALE and not force:
+        raise StageError(f"{stage.directory}: {state.reason}; the scan differs from the config "
+                         "(use --force to move it aside and scan again)")
+    return state
+
+
+def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool, progress=no_progress) -> bool:
+    """The capture stage: resumed when interrupted; a scan that differs from the config
+    is moved aside (never deleted) only with ``force``."""
+    from ilt.capture.camera import check_sim_camera
+
+    state = check_capture(stage, force)
+    if state.done and not force:
+        log.info("capture: up to date (%s)", stage.directory)
+        if read_record(stage.directory) is None:  # shot by `ilt capture`: recorded as if run here
+            write_record(stage.directory, "capture", stage.parameters, {})
+        return False
+    check_sim_camera(cfg.rig)   # an unknown scene or one too large: refused before anything moves
+    if state.state == STALE or (state.done and force):
+        k = 1
+        while (aside := stage.directory.with_name(f"{stage.directory.name}.previous-{k}")).exists():
+            k += 1
+        os.replace(stage.directory, aside)
+        log.warning("capture: the previous scan is kept in %s", aside)
+    resume = (stage.directory / LOG_NAME).exists()
+    log.info("capture: %s (%s)", "resuming" if resume else "scanning", state.reason or state.state)
+
+    from ilt.capture.plan import planned_beams
+
+    with progress(planned_beams(cfg.rig.plan), "capture") as update:
+        def on_beam(result, done, total):
+            log.debug("capture: beam %d (%d/%d) %.1f s", result.beam, done, total, result.seconds)
+            update(1)
+
+        capture(cfg.rig, stage.directory, resume=resume, on_beam=on_beam)
+    write_record(stage.directory, "capture", stage.parameters, {})
+    return True
+
+
+def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False, progress=no_progress,
+                 executor=None) -> list[dict]:
+    """Run every stage that is not up to date, in order. Returns one summary per stage.
+    ``progress``, ``executor``: as :func:`plan_stages` takes them."""
+    stages = plan_stages(ws, cfg, progress, executor)
+    # before the config is installed: a refused run changes nothing
+    check_capture(stages[0], force)
+    if not force:  # --force writes every stage again (the scan moved aside): nothing is built on
+        check_unchanged(ws, cfg)
+    install_config(ws, cfg)
+    _remove_scratch(ws)  # frames a killed run kept
+    try:
+        return _run_stages(ws, cfg, stages, force, progress)
+    finally:
+        _remove_scratch(ws)
+
+
+def _run_stages(ws: Workspace, cfg: RunConfig, stages: list[Stage], force: bool, progress=no_progress) -> list[dict]:
+    summaries = []
+    for stage in stages:
+        t0 = time.monotonic()
+        if stage.name == "capture":
+            ran = run_capture(ws, stage, cfg, force, progress)
+        else:
+            ran, _ = run_stage(stage.directory, stage.name, stage.parameters, input_fingerprints(stage),
+                               stage.make, force=force, evidence=input_evidences(stage))
+        summaries.append({"stage": stage.name, "directory": str(stage.directory),
+                          "ran": ran, "seconds": round(time.monotonic() - t0, 3)})
+    return summaries
+
+
+def workspace_config(ws: Workspace, config: str | os.PathLike | None) -> RunConfig:
+    """The config given, else the workspace's rig.toml."""
+    path = Path(config) if config else ws.config
+    if not path.exists():
+        raise StageError(f"{path}: no config (give a rig TOML, e.g. configs/sim.toml)"
+                         if config else f"{ws.root}: no {ws.config.name}; give a rig TOML to 'ilt run'")
+    return load_run_config(path)
+

@@ -1,0 +1,109 @@
+"""The simulate stage: a synthetic scene written as an ISF directory with ground truth.
+
+Layout of the directory (docs/formats.md)::
+
+    T.npy  samples.csv  manifest.json          the ISF, as build-isf writes it
+    photos/<kind>.npy  photos/<kind>.exr       photos: sample vectors and camera frames
+    truth/A.npy  truth/T1.npy                  true transport and diag(T1) for unit columns
+    truth/isf-bounces.npy                      (N, m, m) true n-bounce ISFs (m <= 2048)
+    truth/photos/<kind>-bounces.npy            (N, m) true bounces of each photo
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+from ilt.io.exr import write_exr
+from ilt.isf.directory import write_isf
+from ilt.isf.layout import splat
+from ilt.io.manifest import save_npy, write_manifest
+from ilt.io.staged import staged_directory
+from ilt.sim import ILLUMINATIONS, Scene
+from ilt.sim.memory import require
+
+#: the largest m for which the (N, m, m) true n-bounce ISFs are written
+TRUTH_ISF_MAX_M = 2048
+
+
+def write_simulation(
+    scene: Scene,
+    out: str | os.PathLike,
+    parameters: dict,
+    n_bounces: int = 8,
+    max_bounces: int | None = None,
+    force: bool = False,
+) -> Path:
+    """Write ``scene`` as an ISF directory at ``out`` (atomically).
+
+    ``max_bounces`` renders T with the paper's forward tracer truncated at that many
+    bounces (the paper used 7); None gives the exact T.
+    """
+    out = Path(out)
+    if scene.m <= TRUTH_ISF_MAX_M:  # (N, m, m) float64
+        require(8 * n_bounces * scene.m**2, f"the {n_bounces} true n-bounce ISFs of {scene.m} beams")
+    T, scale = scene.isf(max_bounces=max_bounces)
+    with staged_directory(out, force=force) as tmp:
+        fields = write_isf(tmp, T, scene.samples, scene.layout, scene.frame_shape)
+        truth = tmp / "truth"
+        (truth / "photos").mkdir(parents=True)
+        (tmp / "photos").mkdir()
+        save_npy(truth / "A.npy", scene.A)
+        save_npy(truth / "T1.npy", scene.direct / scale)
+        if scene.m <= TRUTH_ISF_MAX_M:
+            save_npy(truth / "isf-bounces.npy", scene.bounce_isfs(n_bounces))
+        for kind in ILLUMINATIONS:
+            photo, bounces = scene.photo(kind, n_bounces=n_bounces)
+            save_npy(tmp / "photos" / f"{kind}.npy", photo)
+            write_exr(
+                tmp / "photos" / f"{kind}.exr", splat(photo, scene.samples, scene.frame_shape),
+                attributes={"ilt:scene": scene.name, "ilt:illumination": kind},
+            )
+            save_npy(truth / "photos" / f"{kind}-bounces.npy", bounces)
+        write_manifest(
+            tmp, "simulate",
+            {**parameters, "truth_bounces": n_bounces, "tracer_bounces": max_bounces},
+            extra=fields,
+        )
+    return out
+
+
+def write_frames(scene, out: str | os.PathLike, parameters: dict, n_bounces: int = 8,
+                 force: bool = False, progress=None) -> Path:
+    """Write a :class:`~ilt.sim.render.RenderedScene` as camera frames (atomically)::
+
+        hdr/beam-00000.exr ... hdr/manifest.json    one float frame per unit-power beam,
+                                                    as 'ilt merge' writes them, with the plan
+        photos/<kind>.exr                           photo frames (flashlight, room, projector)
+        truth/spots.csv                             true spot centres (beam,x,y), px
+        truth/photos/<kind>-bounces.npy             (N, H, W) float32 true n-bounce frames
+        manifest.json
+
+    Frames are rendered and written one at a time.
+    """
+    from ilt.isf.directory import write_samples
+
+    out = Path(out)
+    # a photo's true bounces: (N, H, W) float32 frames
+    require(4 * n_bounces * scene.frame_shape[0] * scene.frame_shape[1],
+            f"the {n_bounces} true bounce frames of each photo")
+    with staged_directory(out, force=force) as tmp:
+        hdr, truth = tmp / "hdr", tmp / "truth"
+        for d in (hdr, truth / "photos", tmp / "photos"):
+            d.mkdir(parents=True)
+        for j in range(scene.m):
+            write_exr(hdr / f"beam-{j:05d}.exr", scene.beam_frame(j),
+                      attributes={"ilt:scene": scene.name, "ilt:beam": j, "ilt:units": "radiosity per unit beam power"})
+            if progress:
+                progress(1)
+        plan = {"m": scene.m, "layout": list(scene.layout), "frame_shape": list(scene.frame_shape)}
+        write_manifest(hdr, "simulate", parameters, extra=plan)
+        write_samples(truth / "spots.csv", scene.centres)
+        for kind in ILLUMINATIONS:
+            photo, bounces = scene.photo(kind, n_bounces=n_bounces)
+            write_exr(tmp / "photos" / f"{kind}.exr", photo,
+                      attributes={"ilt:scene": scene.name, "ilt:illumination": kind})
+            save_npy(truth / "photos" / f"{kind}-bounces.npy", bounces)
+        write_manifest(tmp, "simulate", {**parameters, "frames": True, "truth_bounces": n_bounces}, extra=plan)
+    return out

@@ -15,8 +15,8 @@ import scipy.linalg
 
 from ilt.evaluate.bench import median_time
 from ilt.sim import make_scene
-from ilt.transport.solvers import build_operator
 from ilt.transport.operators import bounce_images
+from ilt.transport.solvers import build_operator
 
 
 def objects(m: int, k: int, seed: int = 0):

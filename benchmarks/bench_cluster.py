@@ -29,7 +29,6 @@ for bit, and the peak resident memory of this process and of each worker.
 from __future__ import annotations
 
 import argparse
-import os
 import resource
 import shutil
 import statistics
@@ -86,9 +85,9 @@ def main() -> None:
 
     from bench_isf import synthetic_frames
 
+    from ilt.hdr.stages import MergeOptions, merge_capture
     from ilt.isf.build import centroids_and_isf
     from ilt.parallel.cluster import executor_for
-    from ilt.hdr.stages import MergeOptions, merge_capture
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

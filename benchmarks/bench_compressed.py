@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from ilt.evaluate.bench import median_time, scene_batch
-from ilt.transport.compressed import compressed_operator
 from ilt.evaluate.errors import relative_errors
 from ilt.sim import make_scene
 from ilt.sim.kernel import corner_kernel_isf, corner_points
+from ilt.transport.compressed import compressed_operator
 from ilt.transport.operators import bounce_images, cancellation_operator
 
 

@@ -16,10 +16,10 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from ilt.workspace.demo import RIG_BEAMS, rig_config
 from ilt.evaluate.end_to_end import compare, ideal_workspace
-from ilt.workspace.pipeline import load_run_config, run_pipeline
 from ilt.io.workspace_dirs import Workspace
+from ilt.workspace.demo import RIG_BEAMS, rig_config
+from ilt.workspace.pipeline import load_run_config, run_pipeline
 
 
 def main() -> None:

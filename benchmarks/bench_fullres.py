@@ -138,12 +138,12 @@ def generate(work: Path, m: int, width: int, height: int, noise: float, channels
              seed: int = 0) -> dict:
     """work/hdr (frames + manifest.json), work/spots (spots.csv, sum.exr), work/photo.exr.
     Re-used when work/generated.json records the same parameters."""
-    from ilt.io.frames import FULL_RESOLUTION
-    from ilt.parallel.chunks import beam_executor, chunks, run_chunks
     from ilt.io.exr import write_exr
+    from ilt.io.frames import FULL_RESOLUTION
     from ilt.io.manifest import write_json
-    from ilt.spots.table import SPOTS_FILE, Spot, write_spots
+    from ilt.parallel.chunks import beam_executor, chunks, run_chunks
     from ilt.spots.stage import SUM_FILE
+    from ilt.spots.table import SPOTS_FILE, Spot, write_spots
 
     params = {"m": m, "width": width, "height": height, "noise": noise, "channels": channels, "seed": seed}
     stamp = work / "generated.json"
@@ -193,8 +193,8 @@ def _read_chunk(beams, files, shape):
 
 def bare_read(hdr_dir: Path, workers: int) -> None:
     """Read every EXR once, in chunks of 16 beams through the pool build_isf uses."""
-    from ilt.parallel.chunks import beam_executor, chunks, run_chunks
     from ilt.io.frames import open_hdr_directory
+    from ilt.parallel.chunks import beam_executor, chunks, run_chunks
 
     hdr = open_hdr_directory(hdr_dir)
     tasks = [(c, [hdr.files[b] for b in c], hdr.frame_shape) for c in chunks(list(range(hdr.m)), CHUNK)]
@@ -357,11 +357,11 @@ def case_build(work: Path, m: int, width: int, height: int, workers: int, repeat
 
 def case_memory(work: Path, m: int, width: int, height: int, workers: int, repeats: int, read: bool,
                 noise: float, channels: int) -> None:
-    from ilt.decompose.stage import load_operator, read_photo
-    from ilt.isf.fine import FINE_DIR, load_fine
     from ilt.decompose.fullres import full_resolution
+    from ilt.decompose.stage import load_operator, read_photo
     from ilt.io.exr import write_exr
     from ilt.isf.directory import load_isf
+    from ilt.isf.fine import FINE_DIR, load_fine
     from ilt.transport.operators import bounce_images
 
     generate(work, m, width, height, noise, channels, workers)

@@ -195,8 +195,7 @@ def make_capture(cap: Path, beams: int, width: int, height: int, distinct: int, 
     import os
 
     from ilt.capture.log import CaptureLog
-    from ilt.io.manifest import LOG_NAME
-    from ilt.io.manifest import fingerprint_file
+    from ilt.io.manifest import LOG_NAME, fingerprint_file
 
     sensor = SensorModel(width=width, height=height)
     distinct = min(distinct, beams)

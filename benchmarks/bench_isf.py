@@ -54,8 +54,8 @@ def synthetic_frames(directory: Path, m: int, width: int, height: int, seed: int
 
 
 def throughput(m: int, width: int, height: int, workers: int, repeats: int, profile: bool = False) -> None:
-    from ilt.isf.build import centroids_and_isf
     from ilt.io.frames import open_hdr_directory, read_frame
+    from ilt.isf.build import centroids_and_isf
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -101,12 +101,12 @@ def throughput(m: int, width: int, height: int, workers: int, repeats: int, prof
 
 def sampling_errors(scene_name: str, beams: int, spot: float, workdir: Path, n_bounces: int = 4) -> dict:
     """{(sampling, kind): (n_bounces,) relative errors} for one rendered scene."""
-    from ilt.isf.build import build_isf, sample_like
     from ilt.decompose.stage import decompose
+    from ilt.isf.build import build_isf, sample_like
     from ilt.isf.directory import load_isf
     from ilt.sim.render import render_scene
-    from ilt.workspace.simulate import write_frames
     from ilt.spots.stage import run_centroids
+    from ilt.workspace.simulate import write_frames
 
     rs = render_scene(scene_name, beams=beams, spot=spot)
     sim = write_frames(rs, workdir / "sim", {"scene": scene_name, "beams": beams})

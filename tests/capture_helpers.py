@@ -88,3 +88,19 @@ tilt = 0.0
 count = {count}
 
 {tail}"""
+
+
+#: the small simulated rig of the workspace tests (8 x 8 beams, one photo, 4 bounces)
+SMALL_RIG = run_rig_toml(8, 8, "radiance_scale = 1.0e8", """\
+[centroids]
+workers = 1
+
+[build-isf]
+workers = 1
+
+[photos]
+sim = ["flashlight"]
+
+[decompose]
+bounces = 4
+""")

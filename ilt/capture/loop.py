@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.io.beams import BEAM_GLOB, FrameRecord, beam_name, write_beam_manifest
 from ilt.capture.log import CaptureLog, read_log
+from ilt.io.beams import BEAM_GLOB, FrameRecord, beam_name, write_beam_manifest
 from ilt.io.manifest import LOG_NAME, fingerprint_file, write_manifest
 
 from .adaptive import AdaptiveBracket

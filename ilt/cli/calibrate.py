@@ -31,8 +31,8 @@ def command(inputs, output, times, order, max_order, pin_span, tolerance, no_plo
     directory, or a capture directory (up to 8 beams pooled). Writes the polynomial
     coefficients, measured exposure ratios, residual and max |f(M) - M|.
     """
-    from ilt.io.exposure import parse_times
     from ilt.hdr.stages import calibrate
+    from ilt.io.exposure import parse_times
 
     path, result = calibrate(list(inputs), output, times=parse_times(times) if times else None,
                              order=order, max_order=max_order, pin_span=pin_span,

@@ -69,9 +69,9 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
     merge' marked saturated (<stem>.saturated.png beside the photo) are left out of
     the full-resolution images and counted.
     """
-    from ilt.parallel.cluster import executor_for
     from ilt.decompose.stage import decompose, default_cache_dir
     from ilt.isf.directory import load_isf
+    from ilt.parallel.cluster import executor_for
 
     isf_path, output = workspace.resolve(isf_path, "build-isf"), workspace.resolve(output, "decompose")
     isf = load_isf(isf_path, mmap=True)  # T is never held twice: solvers copy or read it as they need

@@ -51,9 +51,9 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
     .valid.png (count of samples used) and .saturated.png (saturated in every frame).
     With --bracket, RAW_FILES are one bracket's frames and -o names the .exr.
     """
-    from ilt.io.exposure import parse_times
     from ilt.hdr.merge import NoiseModel
     from ilt.hdr.stages import MergeOptions, load_response, merge_capture, merge_files
+    from ilt.io.exposure import parse_times
 
     if bracket and (not inputs or output is None):
         raise click.UsageError("--bracket needs the RAW_FILES and -o PHOTO.exr")
@@ -71,8 +71,8 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
         require_dir(inputs[0], "the capture", "run 'ilt capture' first, or give CAPTURE_DIR")
         params = {"gain": gain, "read_noise": read_noise, "margin": margin, "color": color,
                   "compression": compression, "response": response_path}
-        from ilt.parallel.cluster import executor_for
         from ilt.hdr.bracket import list_beams
+        from ilt.parallel.cluster import executor_for
 
         beams = len(list_beams(inputs[0]))
         with executor_for(scheduler, workers) as executor, progress_bar(beams, "merge") as update:

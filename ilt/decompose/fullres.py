@@ -1,8 +1,13 @@
-"""TODO docstring."""
+"""Full-resolution n-bounce images of a photo (docs/fullres.md).
 
+The sample-level recursion (:func:`ilt.transport.operators.bounce_images`) splits a
+photo's cell integrals; the fine operator (:mod:`ilt.isf.fine`) spreads each bounce of
+indirect light over its cell's pixels, and the direct image is what is left of the
+photo. No solve beyond the sample level's: every image comes from the recursion's own
+``r_n`` and ``L_(n+1) / t1``, and integrates over every cell to the sample-level bounce.
+"""
 
 from __future__ import annotations
-
 
 import numpy as np
 

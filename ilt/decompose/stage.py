@@ -16,14 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.isf.cells import integrate, mosaic
-from ilt.transport.compressed import grid_points
-from ilt.io.frames import FrameError, PixelMapping
-from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
 from ilt.decompose.fullres import full_resolution
 from ilt.io.exr import ImageError, read_exr, write_exr
-from ilt.isf.directory import ISF
-from ilt.isf.layout import sample_frame, splat, vector_to_image
+from ilt.io.frames import FrameError, PixelMapping
 from ilt.io.manifest import (
     MANIFEST,
     StageError,
@@ -34,13 +29,18 @@ from ilt.io.manifest import (
     write_json,
     write_manifest,
 )
-from ilt.io.staged import staged_directory
 from ilt.io.preview import bounce_panel
-from ilt.transport.regularise import regularise_isf
-from ilt.transport.solvers import build_operator, choose_solver, estimate_noise
-from ilt.transport.operators import CancellationOperator, TransportError, bounce_images, cancellation_operator
+from ilt.io.staged import staged_directory
+from ilt.isf.cells import integrate, mosaic
+from ilt.isf.directory import ISF
+from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
+from ilt.isf.layout import sample_frame, splat, vector_to_image
+from ilt.transport.compressed import grid_points
 from ilt.transport.diagnostics import decomposition_diagnostics, operator_diagnostics
-from ilt.transport.scan import scan_isf
+from ilt.transport.operators import CancellationOperator, bounce_images, cancellation_operator
+from ilt.transport.regularise import regularise_isf
+from ilt.transport.scan import TransportError, scan_isf
+from ilt.transport.solvers import build_operator, choose_solver, estimate_noise
 
 log = logging.getLogger(__name__)
 

@@ -37,10 +37,11 @@ import numpy as np
 import scipy.linalg
 
 from ilt.evaluate.errors import relative_errors
-from ilt.transport.regularise import BiasVariance, regularise_isf
 from ilt.sim import ILLUMINATIONS, make_scene
+from ilt.transport.operators import bounce_images
+from ilt.transport.regularise import BiasVariance, regularise_isf
+from ilt.transport.scan import TransportError
 from ilt.transport.solvers import build_operator
-from ilt.transport.operators import TransportError, bounce_images
 
 QUICK_SIZES = (256, 512, 1024)
 #: the largest m simulated: the box's dense T, A and truth (~6 m x m float64 arrays,
@@ -182,8 +183,8 @@ def kernel_case(m: int, noise: float = 0.0, solvers=SOLVERS, batch: int = 16, n_
     mapped T included."""
     import tempfile
 
-    from ilt.transport.compressed import unit_column_product
     from ilt.sim.kernel import corner_kernel_isf, corner_points
+    from ilt.transport.compressed import unit_column_product
 
     n = max(1, round(math.sqrt(m / 3)))
     rows = [BenchRow(scene=KERNEL_SCENE, m=3 * n * n, noise=noise, solver=name, batch=batch, bounces=n_bounces,

@@ -62,11 +62,11 @@ def ideal_workspace(cfg, kinds, out: str | os.PathLike, n_bounces: int = 8, work
     """The noise-free counterpart of a rig workspace in ``out``: ``hdr/`` (the renderer's beam
     frames on the green grid), ``photos/<kind>.exr``, then ``spots/``, ``isf/``, ``decompose/``
     with the stages' default parameters."""
-    from ilt.isf.build import build_isf
     from ilt.decompose.stage import decompose
     from ilt.io.exr import write_exr
-    from ilt.isf.directory import load_isf
     from ilt.io.manifest import write_manifest
+    from ilt.isf.build import build_isf
+    from ilt.isf.directory import load_isf
     from ilt.spots.stage import run_centroids
 
     out = Path(out)
@@ -93,8 +93,8 @@ def ideal_workspace(cfg, kinds, out: str | os.PathLike, n_bounces: int = 8, work
 def bounce_errors(workspace: str | os.PathLike, cfg, kinds, n_bounces: int = 4) -> dict[str, list[float]]:
     """Per photo kind, the relative error of bounces 1..``n_bounces`` of ``workspace/decompose``
     against the renderer's truth sampled like the workspace's ISF (module docstring)."""
-    from ilt.isf.build import sample_like
     from ilt.evaluate.errors import relative_errors
+    from ilt.isf.build import sample_like
     from ilt.isf.directory import load_isf
 
     workspace = Path(workspace)

@@ -22,8 +22,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ilt.io.beams import BEAM_GLOB, FrameRecord, beam_name
 from ilt.capture.log import CaptureLogError, read_log
+from ilt.io.beams import BEAM_GLOB, FrameRecord, beam_name
 from ilt.io.manifest import LOG_NAME, MANIFEST
 
 log = logging.getLogger(__name__)

@@ -18,14 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.io.beams import FrameRecord
 from ilt.hdr.bracket import Bracket, list_beams, logged_fingerprints, read_beam
 from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
 from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
-from ilt.io.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
+from ilt.io.atomic import atomic_path
+from ilt.io.beams import FrameRecord
 from ilt.io.exr import write_exr, write_png
 from ilt.io.manifest import MANIFEST, fingerprint_file, write_json, write_manifest
-from ilt.io.atomic import atomic_path
+from ilt.io.raw import SATURATION_MARGIN, GreenInfo, RawError, read_color, read_green
 from ilt.io.staged import staged_directory
 
 log = logging.getLogger(__name__)

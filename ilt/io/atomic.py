@@ -1,5 +1,10 @@
-"""TODO docstring."""
+"""Writes that are whole or absent: a temporary name beside the target, renamed over it
+on success (:func:`atomic_path`), and the temporaries a killed process left behind.
 
+What it writes gets the modes an ordinary open() and mkdir() would give under the
+umask, and temporaries carry their writer's pid and host, so the next run can remove
+those of a process that is gone.
+"""
 
 from __future__ import annotations
 
@@ -13,9 +18,6 @@ import socket
 from collections.abc import Iterator
 from pathlib import Path
 
-
-
-
 #: a temporary name of :func:`atomic_path` or :func:`staged_directory`:
 #: ``.<name>.tmp-<pid>@<host>-<random>`` (``.old-`` for a replaced directory on its way
 #: out); the pid of the process filling it tells a stale one (its process is gone) from
@@ -23,7 +25,6 @@ from pathlib import Path
 #: workspace on shared storage is filled from other machines too, whose pids mean
 #: nothing here)
 TEMPORARY = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?P<pid>\d+)(?:@(?P<host>[0-9a-f]+))?-")
-
 
 _HOST = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
 
@@ -60,7 +61,7 @@ def remove_stale_temporaries(directory: str | os.PathLike) -> list[Path]:
     return removed
 
 
-def _remove_lost_temporaries(directory: Path) -> None:
+def remove_lost_temporaries(directory: Path) -> None:
     """Temporary files inside a finished staged directory: a writer lost mid-write left
     them (a cluster's worker killed while its beam was run again elsewhere); nothing
     writes there any more, and no manifest lists a hidden file."""
@@ -99,7 +100,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def _make_temporary_directory(parent: Path, name: str, kind: str) -> Path:
+def make_temporary_directory(parent: Path, name: str, kind: str) -> Path:
     while True:
         path = parent / _temporary_name(name, kind)
         try:

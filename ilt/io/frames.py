@@ -1,4 +1,4 @@
-"""HDR directories (one linear EXR per beam) and running per-beam work in parallel.
+"""HDR directories (one linear EXR per beam) and their frames.
 
 An HDR directory is any directory of EXR files, one per beam, taken in the order of
 their sorted names (``ilt merge`` writes ``beam-00000.exr`` ...), with an optional
@@ -11,9 +11,8 @@ green images. The EXR attributes ``ilt:pixel_origin`` [x, y] and ``ilt:pixel_sca
 full-frame sensor pixels (DESIGN.md sec. 3); frames without them are full resolution.
 Spots and samples are stored in full-frame pixels; cells stay on the frame grid.
 
-Per-beam work (centroids, columns of T) runs through a ``concurrent.futures``
-executor in chunks of beams, with a bounded number of chunks in flight, so memory
-holds a few frames per worker however many beams there are.
+Per-beam work on them (centroids, columns of T) runs in chunks of beams through
+:mod:`ilt.parallel.chunks`.
 """
 
 from __future__ import annotations

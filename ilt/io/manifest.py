@@ -1,14 +1,10 @@
-"""Stage manifests, content fingerprints and atomic directory writes (DESIGN.md sec. 3).
+"""Stage manifests and content fingerprints (DESIGN.md sec. 3).
 
-A stage never writes into its final directory: it fills a hidden sibling temporary
-directory and renames it into place, so an interrupted run leaves either the old
-directory or the complete new one, never a half stage that looks whole.
-
-It replaces only what it may lose: an empty directory or an earlier output of the same
-stage holding nothing but its own files (issue 14, "nothing a user made is ever lost").
-What it writes gets the modes an ordinary open() and mkdir() would give under the
-umask, and temporaries carry their writer's pid, so the next run can remove those of
-a process that is gone.
+Every stage directory holds a ``manifest.json``: the stage's name, ilt's version, the
+parameters, the inputs with their fingerprints and every output file with its sha256,
+written last (:func:`write_manifest`). A later run recognises the directory as the
+stage's own by it, and ``ilt status --verify`` re-hashes the files against it. How the
+directory is written whole is :mod:`ilt.io.staged`; single files, :mod:`ilt.io.atomic`.
 """
 
 from __future__ import annotations

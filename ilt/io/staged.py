@@ -1,5 +1,12 @@
-"""TODO docstring."""
+"""Stage directories written whole or not at all (DESIGN.md sec. 3, issue 14).
 
+A stage never writes into its final directory: it fills a hidden sibling temporary
+directory and renames it into place, so an interrupted run leaves either the old
+directory or the complete new one, never a half stage that looks whole. It replaces
+only what it may lose: an empty directory or an earlier output of the same stage
+holding nothing but its own files; never the current directory or one above it, the
+home directory, a workspace or a raw capture.
+"""
 
 from __future__ import annotations
 
@@ -9,10 +16,8 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
-
-from ilt.io.atomic import TEMPORARY, _make_temporary_directory, _remove_lost_temporaries, remove_stale_temporaries
+from ilt.io.atomic import TEMPORARY, make_temporary_directory, remove_lost_temporaries, remove_stale_temporaries
 from ilt.io.manifest import LOG_NAME, MANIFEST, RECORD, StageError, read_manifest
-
 
 #: how many of the files a refusal names
 _NAMED = 5
@@ -125,10 +130,10 @@ def staged_directory(final: str | os.PathLike, force: bool = False) -> Iterator[
         raise StageError(f"{final} exists; use --force to replace it")
     final.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(final.parent)
-    tmp = _make_temporary_directory(final.parent, final.name, "tmp")
+    tmp = make_temporary_directory(final.parent, final.name, "tmp")
     try:
         yield tmp
-        _remove_lost_temporaries(tmp)
+        remove_lost_temporaries(tmp)
         if final.exists():
             # checked again: the directory may have changed (or appeared) while the stage ran
             if reason := _refusal(final):
@@ -137,7 +142,7 @@ def staged_directory(final: str | os.PathLike, force: bool = False) -> Iterator[
             if old != new and _files(final):
                 raise StageError(f"{final} is the output of {_quoted(old)}, not {_quoted(new)}; "
                                  "choose another output directory")
-            old_dir = _make_temporary_directory(final.parent, final.name, "old")
+            old_dir = make_temporary_directory(final.parent, final.name, "old")
             os.replace(final, old_dir / final.name)
             os.replace(tmp, final)
             shutil.rmtree(old_dir, ignore_errors=True)

@@ -22,9 +22,20 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial import cKDTree
 
-from ilt.isf.cells import cell_operator, integrate_with, voronoi_cells
+from ilt.io.exr import write_exr
 from ilt.io.frames import FrameError, FrameScratch, load_frame, open_hdr_directory
-from ilt.parallel.chunks import beam_executor, chunks, run_chunks
+from ilt.io.manifest import (
+    MANIFEST,
+    fingerprint_array,
+    fingerprint_file,
+    read_manifest,
+    save_npy,
+    write_manifest,
+)
+from ilt.io.preview import save_png
+from ilt.io.staged import staged_directory
+from ilt.isf.cells import cell_operator, integrate_with, voronoi_cells
+from ilt.isf.directory import CELLS_FILE, SCALES_FILE, T_FILE, write_isf
 from ilt.isf.fine import (
     COEFFICIENTS_FILE,
     DEFAULT_DEGREE,
@@ -36,20 +47,9 @@ from ilt.isf.fine import (
     frames_inputs,
     write_fine,
 )
-from ilt.io.exr import write_exr
-from ilt.isf.directory import CELLS_FILE, SCALES_FILE, T_FILE, write_isf
-from ilt.io.manifest import (
-    MANIFEST,
-    fingerprint_array,
-    fingerprint_file,
-    read_manifest,
-    save_npy,
-    write_manifest,
-)
-from ilt.io.staged import staged_directory
-from ilt.io.preview import save_png
-from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
+from ilt.parallel.chunks import beam_executor, chunks, run_chunks
 from ilt.spots.stage import SUM_FILE
+from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,5 @@
-"""Full-resolution n-bounce images: the fine operator (docs/fullres.md).
+"""The fine operator, for full-resolution n-bounce images (docs/fullres.md); it is
+applied to photos by :mod:`ilt.decompose.fullres`.
 
 The sample-level recursion (:mod:`ilt.transport`) splits a photo's cell integrals
 ``L`` (m values) into bounces ``L1, L2, ...``. To split the photo's *pixels*, use that
@@ -329,4 +330,4 @@ def frames_inputs(hdr_path: str | os.PathLike, isf_dir: str | os.PathLike) -> di
 
 
 __all__ = ["FineOperator", "FineError", "CellGeometry", "fit_operator", "FineAccumulator", "write_fine",
-           "load_fine", "full_resolution", "basis_terms", "FINE_DIR", "DEFAULT_DEGREE", "DEGREES"]
+           "load_fine", "basis_terms", "FINE_DIR", "DEFAULT_DEGREE", "DEGREES"]

@@ -1,5 +1,10 @@
-"""TODO docstring."""
+"""Beams in chunks, on this machine's process pool or a cluster's executor.
 
+:func:`run_chunks` sends every chunk through one path (:func:`run_batch`), keeps the
+results in beam order, reports progress, and turns a worker lost mid-chunk into one
+:class:`WorkerError` naming the beams it held. The stages (merge, centroids,
+build-isf) hand it their per-chunk functions; :func:`beam_executor` gives the pool.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +14,6 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import BrokenExecutor, Executor
 from contextlib import contextmanager
 from itertools import islice
-
 
 from ilt.io.exr import one_thread
 

@@ -1,11 +1,9 @@
-"""TODO docstring."""
-
+"""The memory this machine has free: what the solver choice and the simulator's size checks
+compare their needs with."""
 
 from __future__ import annotations
 
 import os
-
-
 
 
 def available_memory() -> int:

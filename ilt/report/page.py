@@ -110,8 +110,8 @@ def write_report(workspace: Workspace, out: str | os.PathLike | None = None, for
     file of anyone else's (:func:`ilt.io.staged.staged_directory`).
     """
     from ilt.decompose.stage import default_cache_dir, load_operator
-    from ilt.isf.directory import load_isf
     from ilt.io.preview import matrix_panel
+    from ilt.isf.directory import load_isf
 
     ws = workspace
     out = Path(out) if out else ws.report

@@ -14,7 +14,7 @@ import numpy as np
 import scipy.linalg
 from scipy.spatial.distance import pdist
 
-from .formfactors import _TOL, flatland_exchange, rectangle_exchange, rays_blocked, segment_normals
+from .formfactors import _TOL, flatland_exchange, rays_blocked, rectangle_exchange, segment_normals
 
 #: Vertices of the flatland M (paper Fig. 3): high outer ends, a lower middle peak,
 #: two valleys.  Facets 0 and 2 are parallel, as are 1 and 3, so facet 0 lights

@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 
-
 def corner_points(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centres (3 n^2, 3), normals (3 n^2, 3) and face (3 n^2,) of the cube corner's
     three faces, each in scanline order of its n x n cells (the layout (3n, n), as the

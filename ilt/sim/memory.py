@@ -9,7 +9,6 @@ fit would end in numpy's ``Unable to allocate`` traceback, or in swapping for ho
 
 from __future__ import annotations
 
-
 #: (N, N) float64 arrays alive at the peak of building a scene and solving its transport:
 #: tracemalloc peaks of 85-112 bytes per N^2 (11-14 matrices) for N = 1024-3072, flatland
 #: and box, exact and rendered; fewer than measured would let a run through that cannot finish

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from ilt.spots.table import Spot
 
 log = logging.getLogger(__name__)

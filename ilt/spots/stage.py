@@ -1,5 +1,7 @@
-"""TODO docstring."""
-
+"""The centroids stage (``ilt centroids``): the spot of every beam of a merged or raw
+capture, in chunks over the pool, with the spots table, the sum of all frames
+(``sum.exr``) and an overlay of the spots on it (``overlay.png``).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from ilt.spots.find import SpotParameters, find_spot
 from ilt.spots.table import FLAGS, SPOTS_FILE, Spot, SpotsError, flag_large, format_flags, write_spots
 
@@ -17,7 +20,6 @@ log = logging.getLogger(__name__)
 
 
 SUM_FILE = "sum.exr"
-
 
 OVERLAY_FILE = "overlay.png"
 
@@ -91,9 +93,9 @@ def read_shortest_exposure(beam_dir, dark=None):
     frame when it has one, the green grid's mapping to full-frame pixels and the level
     (DN above black) at which a sample counts as saturated. ``dark`` is unused (the
     capture's own dark frames are)."""
-    from ilt.io.frames import PixelMapping
     from ilt.hdr.bracket import read_beam
     from ilt.io.exposure import parse_positive
+    from ilt.io.frames import PixelMapping
     from ilt.io.raw import read_green
 
     bracket = read_beam(beam_dir)
@@ -185,11 +187,11 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
     frame is also kept for a following build-isf (:class:`ilt.io.frames.FrameScratch`).
     Returns the manifest's summary fields.
     """
-    from ilt.io.frames import FrameScratch, HDRDirectory, open_hdr_directory, read_frame
-    from ilt.parallel.chunks import beam_executor, chunks, run_chunks
     from ilt.io.exr import write_exr
-    from ilt.io.staged import staged_directory
+    from ilt.io.frames import FrameScratch, HDRDirectory, open_hdr_directory, read_frame
     from ilt.io.manifest import write_manifest
+    from ilt.io.staged import staged_directory
+    from ilt.parallel.chunks import beam_executor, chunks, run_chunks
 
     path = hdr_dir.path if isinstance(hdr_dir, HDRDirectory) else Path(hdr_dir)
     if not isinstance(hdr_dir, HDRDirectory) and path.is_dir() and is_capture_directory(path):

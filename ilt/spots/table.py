@@ -1,5 +1,5 @@
-"""TODO docstring."""
-
+"""One beam's spot (:class:`Spot`) and the spots table, ``spots.csv`` (docs/formats.md):
+centroid, flux, peak, area and the QA flags, one row per beam."""
 
 from __future__ import annotations
 
@@ -10,9 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-
 SPOTS_FILE = "spots.csv"
-
 
 SPOTS_HEADER = ["beam", "x", "y", "flux", "peak", "area", "flags"]
 

@@ -63,14 +63,8 @@ import scipy.linalg
 import threadpoolctl
 from scipy.sparse.linalg import LinearOperator
 
-from ilt.transport.scan import IsfMatrix, scan_isf
-from ilt.transport.operators import (
-    TransportError,
-    UnitColumnOperator,
-    check_photo,
-    one_norm_estimate,
-    scale_rows,
-)
+from ilt.transport.operators import UnitColumnOperator, check_photo, one_norm_estimate, scale_rows
+from ilt.transport.scan import IsfMatrix, TransportError, scan_isf
 
 log = logging.getLogger(__name__)
 
@@ -623,7 +617,7 @@ def _compress_on(executor, source: MappedFile, root: Node, order: np.ndarray, in
     form's own arrays) or leaf inverses. The first error a task raises is raised here,
     the other tasks cancelled; a task the cluster lost (its workers kept dying) is a
     TransportError naming its points."""
-    from concurrent.futures import BrokenExecutor, FIRST_COMPLETED, wait
+    from concurrent.futures import FIRST_COMPLETED, BrokenExecutor, wait
 
     cut = max(1, math.ceil(math.log2(_cluster_workers(executor))))
     nodes = {(n.lo, n.hi): n for n in root.walk()}

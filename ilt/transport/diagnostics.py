@@ -1,21 +1,21 @@
-"""TODO docstring."""
-
+"""Whether a result can be trusted (DESIGN.md sec. 4): figures of an operator (condition,
+smallest diagonal of T, spectral radius of ``A = I - C1``) and of a decomposition
+(closure, negatives in each bounce), each with warnings that quote them.
+"""
 
 from __future__ import annotations
 
-
 import numpy as np
 from scipy.sparse.linalg import ArpackError, ArpackNoConvergence, LinearOperator, eigs
+
 from ilt.transport.operators import CancellationOperator, Decomposition
 from ilt.transport.scan import IsfMatrix
 
 #: condition estimate past which results are flagged as unreliable
 CONDITION_WARN = 1e10
 
-
 #: relative accuracy of ``spectral_radius_A`` (ARPACK's stopping test, below)
 RHO_TOL = 1e-3
-
 
 #: Krylov basis size of that estimate: the dominant eigenvalue of a scene's ``A`` (the
 #: Perron root of a non-negative matrix) stands apart, so a small basis finds it in a
@@ -23,11 +23,9 @@ RHO_TOL = 1e-3
 #: ARPACK's default basis of 20 and tolerance 1e-8)
 RHO_NCV = 6
 
-
 #: within this of 1 the estimate is refined to ``RHO_REFINED_TOL``, so ``rho >= 1``
 #: (the warning) is decided as sharply as a tight estimate decides it
 RHO_REFINE_BAND = 10 * RHO_TOL
-
 
 RHO_REFINED_TOL = 1e-8
 
@@ -114,11 +112,9 @@ def operator_diagnostics(T: np.ndarray | IsfMatrix, operator: CancellationOperat
 #: share of negative samples in a bounce past which a warning is raised
 NEGATIVE_WARN = 0.01
 
-
 #: a sample counts as negative below -NEGATIVE_FLOOR * max|L|: float32 rounding of
 #: EXR data (~1e-7 relative, mildly amplified by C1) is not a physical fault
 NEGATIVE_FLOOR = 1e-6
-
 
 #: closure error past which a warning is raised
 CLOSURE_WARN = 1e-10

@@ -35,8 +35,6 @@ __all__ = [
     "Decomposition",
     "cancellation_operator",
     "bounce_images",
-    "operator_diagnostics",
-    "decomposition_diagnostics",
 ]
 
 #: block of rows used when reading diag(T^-1) out of the inverted factors

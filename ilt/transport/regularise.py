@@ -205,8 +205,8 @@ def bias_variance(T: np.ndarray, layout: tuple[int, int], photos: np.ndarray, tr
     and splits the photos with the dense solver. Returns one :class:`BiasVariance`
     per width, in increasing width.
     """
-    from ilt.transport.solvers import build_operator
     from ilt.transport.operators import bounce_images
+    from ilt.transport.solvers import build_operator
 
     isf = scan_isf(T)
     unit = isf.T / isf.norms

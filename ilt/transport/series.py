@@ -45,14 +45,8 @@ from scipy.sparse.linalg import (
     eigs,
 )
 
-from ilt.transport.scan import IsfMatrix, scan_isf
-from ilt.transport.operators import (
-    TransportError,
-    UnitColumnOperator,
-    check_photo,
-    one_norm_estimate,
-    scale_rows,
-)
+from ilt.transport.operators import UnitColumnOperator, check_photo, one_norm_estimate, scale_rows
+from ilt.transport.scan import IsfMatrix, TransportError, scan_isf
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import blas
 
+from ilt.parallel.memory import available_memory
 from ilt.transport.compressed import DEFAULT_TOL, compressed_operator
+from ilt.transport.operators import (
+    CancellationOperator,
+    UnitColumnOperator,
+    cancellation_operator,
+    check_photo,
+    scale_rows,
+)
+from ilt.transport.scan import IsfMatrix, TransportError, scan_isf
 from ilt.transport.series import (
     count_nonzeros,
     greedy_colouring,
@@ -38,16 +47,6 @@ from ilt.transport.series import (
     series_operator,
     sparse_unit_columns,
 )
-from ilt.transport.operators import (
-    CancellationOperator,
-    TransportError,
-    UnitColumnOperator,
-    cancellation_operator,
-    check_photo,
-    scale_rows,
-)
-from ilt.parallel.memory import available_memory
-from ilt.transport.scan import IsfMatrix, scan_isf
 
 log = logging.getLogger(__name__)
 

@@ -22,16 +22,16 @@ from pathlib import Path
 from ilt import __version__
 from ilt.decompose.stage import decompose, load_operator
 from ilt.evaluate.errors import bounce_isf_errors
-from ilt.isf.directory import load_isf
-from ilt.io.manifest import MANIFEST, StageError, read_manifest, write_json, write_manifest
 from ilt.io.atomic import atomic_path
-from ilt.io.staged import staged_directory
+from ilt.io.manifest import MANIFEST, StageError, read_manifest, write_json, write_manifest
 from ilt.io.preview import matrix_panel
+from ilt.io.staged import staged_directory
+from ilt.io.workspace_dirs import Workspace
+from ilt.isf.directory import load_isf
 from ilt.report.page import STYLE, fig5_matrices, write_report
 from ilt.sim import ILLUMINATIONS, make_scene
-from ilt.workspace.simulate import write_simulation
 from ilt.transport.operators import cancellation_operator
-from ilt.io.workspace_dirs import Workspace
+from ilt.workspace.simulate import write_simulation
 
 log = logging.getLogger(__name__)
 

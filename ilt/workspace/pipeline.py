@@ -34,9 +34,8 @@ import numpy as np
 
 from ilt.capture.config import ConfigError, RigConfig, parse_config
 from ilt.capture.loop import capture
-from ilt.io.manifest import LOG_NAME, StageError, fingerprint_file, write_manifest
 from ilt.io.atomic import atomic_path
-from ilt.io.staged import staged_directory
+from ilt.io.manifest import LOG_NAME, StageError, fingerprint_file, write_manifest
 from ilt.io.stage import (
     DONE,
     MISSING,
@@ -50,8 +49,9 @@ from ilt.io.stage import (
     stage_state,
     write_record,
 )
-from ilt.workspace.options import BUILD_ISF, CENTROIDS, DECOMPOSE, MERGE, StageOption
+from ilt.io.staged import staged_directory
 from ilt.io.workspace_dirs import STAGE_DIRS, Workspace
+from ilt.workspace.options import BUILD_ISF, CENTROIDS, DECOMPOSE, MERGE, StageOption
 
 log = logging.getLogger(__name__)
 
@@ -191,10 +191,10 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     :func:`ilt.parallel.cluster.executor_for`), else each stage's process pool of its
     ``workers`` (the solver: threads of this process).
     """
-    from ilt.isf.build import build_isf
     from ilt.capture.plan import planned_beams
     from ilt.decompose.stage import decompose, default_cache_dir
     from ilt.hdr.stages import merge_capture
+    from ilt.isf.build import build_isf
     from ilt.isf.directory import load_isf
     from ilt.spots.find import SpotParameters
     from ilt.spots.stage import run_centroids
@@ -285,8 +285,8 @@ def capture_photos(rig: RigConfig, kinds, out: Path, options) -> Path:
     """
     from ilt.capture.camera import SimCamera, sim_sensor
     from ilt.capture.plan import make_plan
-    from ilt.io.beams import FrameRecord, write_beam_manifest
     from ilt.hdr.stages import merge_beam
+    from ilt.io.beams import FrameRecord, write_beam_manifest
     from ilt.sim.render import render_scene
     from ilt.sim.sensor import write_dng
 

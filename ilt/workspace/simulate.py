@@ -14,12 +14,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-
 from ilt.io.exr import write_exr
-from ilt.isf.directory import write_isf
-from ilt.isf.layout import splat
 from ilt.io.manifest import save_npy, write_manifest
 from ilt.io.staged import staged_directory
+from ilt.isf.directory import write_isf
+from ilt.isf.layout import splat
 from ilt.sim import ILLUMINATIONS, Scene
 from ilt.sim.memory import require
 

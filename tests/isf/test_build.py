@@ -1,0 +1,347 @@
+"""centroids -> build-isf -> decompose end to end on rendered frames, against the truth."""
+
+import json
+import os
+import shutil
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ilt.cli import cli
+from ilt.io.exr import read_exr, write_exr
+from ilt.isf.build import build_isf, sample_like
+from ilt.isf.cells import integrate, mosaic, voronoi_cells
+from ilt.isf.directory import load_isf
+
+
+def run(*args, ok=True):
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    if ok:
+        assert result.exit_code == 0, result.output + repr(result.exception)
+    return result
+
+
+def _pipeline(root, beams):
+    sim, spots = root / "sim", root / "spots"
+    run("simulate", "m", "--frames", "--beams", beams, "--fine", 8, "--px-per-beam", 24, "-o", sim)
+    run("centroids", sim / "hdr", "-o", spots, "--workers", 1)
+    for sampling in ("cell", "point"):
+        run("build-isf", sim / "hdr", spots, "-o", root / sampling, "--sampling", sampling, "--workers", 1)
+        run("decompose", "--isf", root / sampling, sim / "photos" / "room.exr", sim / "photos" / "flashlight.exr",
+            "-o", root / f"dec-{sampling}", "--no-cache", "--bounces", 4)
+    return sim
+
+
+def _errors(root, sim, sampling, kind):
+    isf = load_isf(root / sampling)
+    est = np.load(root / f"dec-{sampling}" / kind / "bounces.npy")
+    truth = sample_like(isf, np.load(sim / "truth" / "photos" / f"{kind}-bounces.npy")[:4])
+    return np.linalg.norm(est - truth, axis=1) / np.linalg.norm(truth, axis=1)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    out = {}
+    for beams in (16, 32):
+        root = tmp_path_factory.mktemp(f"m{beams}")
+        out[beams] = (root, _pipeline(root, beams))
+    return out
+
+
+def test_stage_directories(runs):
+    root, sim = runs[32]
+    spots = (root / "spots" / "spots.csv").read_text().splitlines()
+    assert spots[0] == "beam,x,y,flux,peak,area,flags" and len(spots) == 33
+    truth = np.loadtxt(sim / "truth" / "spots.csv", delimiter=",", skiprows=1)
+    found = np.loadtxt(root / "spots" / "spots.csv", delimiter=",", skiprows=1, usecols=(1, 2))
+    assert np.sqrt(((found - truth[:, 1:]) ** 2).sum(1).mean()) <= 0.02
+    for name in ("T.npy", "samples.csv", "manifest.json", "cells.exr", "scales.npy", "T.png"):
+        assert (root / "cell" / name).exists(), name
+    assert (root / "spots" / "overlay.png").exists()
+    isf = load_isf(root / "cell")
+    np.testing.assert_allclose(np.linalg.norm(isf.T, axis=0), 1, rtol=1e-12)
+    assert isf.cells.shape == isf.frame_shape and isf.cells.min() == -1 and isf.cells.max() == 31
+    assert isf.layout == (1, 32) and isf.scales.shape == (32,)
+    # the decomposition is shown as a mosaic of cells on the camera frame
+    image, _ = read_exr(root / "dec-cell" / "room" / "samples" / "bounce-1.frame.exr")
+    assert image.shape[:2] == isf.frame_shape
+
+
+def test_cell_sampling_recovers_the_direct_image(runs):
+    root, sim = runs[32]
+    for kind in ("room", "flashlight"):
+        cell, point = _errors(root, sim, "cell", kind), _errors(root, sim, "point", kind)
+        assert cell[0] < 0.05, (kind, cell)
+        assert point[0] > 0.3 and (point[1:] > 0.8).all()    # the paper's point sampling under-counts
+
+
+def test_errors_fall_as_the_beam_density_grows(runs):
+    for kind in ("room", "flashlight"):
+        coarse = _errors(*runs[16], "cell", kind)
+        fine = _errors(*runs[32], "cell", kind)
+        assert (fine < coarse).all(), (kind, coarse, fine)
+
+
+def test_cells_partition_the_lit_pixels():
+    centroids = np.array([[2.0, 2.0], [7.0, 2.0], [4.5, 6.0]])
+    lit = np.ones((9, 10), dtype=bool)
+    lit[:, 0] = False
+    labels = voronoi_cells(centroids, (9, 10), lit)
+    assert (labels[:, 0] == -1).all() and set(np.unique(labels)) == {-1, 0, 1, 2}
+    image = np.random.default_rng(0).random((9, 10))
+    np.testing.assert_allclose(integrate(image, labels).sum(), image[lit].sum())
+    painted = mosaic(integrate(np.ones((9, 10)), labels), labels)
+    np.testing.assert_allclose(painted[lit], 1.0, rtol=1e-6)
+
+
+def test_executor_is_pluggable_and_gives_the_same_T(runs, tmp_path):
+    root, sim = runs[16]
+    with ThreadPoolExecutor(2) as ex:
+        build_isf(sim / "hdr", root / "spots", tmp_path / "isf", executor=ex, chunk=3)
+    np.testing.assert_array_equal(np.load(tmp_path / "isf" / "T.npy"), np.load(root / "cell" / "T.npy"))
+
+
+def _whole_array_reference(isf_dir, hdr_dir, degree):
+    """T and the fine coefficients the way build-isf made them before it streamed them
+    (issue 15): every column in memory, T = raw / scales on the whole, and the fine
+    coefficients finished on whole (K, m, m) float64 arrays (the code of that build)."""
+    from ilt.io.frames import open_hdr_directory
+    from ilt.isf.build import _column_chunk
+    from ilt.isf.fine import MIN_EXPLAINED, CellGeometry, basis_terms
+
+    hdr = open_hdr_directory(hdr_dir)
+    plan = json.loads((isf_dir / "manifest.json").read_text())["beams"]
+    m, K = len(plan), basis_terms(degree)
+    block = _column_chunk(plan, [hdr.files[b] for b in plan], hdr.frame_shape, str(isf_dir / "cells.exr"), m,
+                          None, degree)
+    raw, coefficients, squares = block[:m], block[m:-m].reshape(K, m, m), block[-m:]
+    scales = np.linalg.norm(raw, axis=0)
+    geometry = CellGeometry.from_labels(load_isf(isf_dir).cells, m)
+    diagonal = np.arange(m)
+    coefficients[:, diagonal, diagonal] = 0.0
+    variation = squares - raw * raw / np.maximum(geometry.area, 1.0)[:, None]
+    variation[diagonal, diagonal] = 0.0
+    explained = np.einsum("aij,iab,bij->i", coefficients, geometry.gram(degree), coefficients)
+    total = variation.sum(axis=1)
+    share = np.where(total > 0, explained / np.where(total > 0, total, 1.0), 1.0)
+    coefficients[:, share < MIN_EXPLAINED, :] = 0.0
+    coefficients /= scales[None, None, :]
+    return raw / scales, scales, coefficients.astype(np.float32), share
+
+
+@pytest.mark.parametrize("degree, chunk", [(1, 16), (2, 5)])
+def test_streamed_t_and_fine_coefficients_equal_the_whole_array_build(runs, tmp_path, degree, chunk):
+    """T and scales bit for bit, the float32 coefficients to their rounding, the flat
+    cells the same, whatever the column blocks (chunk 5: uneven blocks, the last short)."""
+    root, sim = runs[32]
+    with ThreadPoolExecutor(2) as ex:
+        build_isf(sim / "hdr", root / "spots", tmp_path / "isf", executor=ex, chunk=chunk, fine_degree=degree)
+    T, scales, coefficients, share = _whole_array_reference(tmp_path / "isf", sim / "hdr", degree)
+    np.testing.assert_array_equal(np.load(tmp_path / "isf" / "T.npy"), T)
+    np.testing.assert_array_equal(np.load(tmp_path / "isf" / "scales.npy"), scales)
+    stored = np.load(tmp_path / "isf" / "fine" / "coefficients.npy")
+    assert stored.dtype == np.float32 and stored.shape == coefficients.shape
+    np.testing.assert_allclose(stored, coefficients, rtol=2e-7, atol=0)
+    fine = json.loads((tmp_path / "isf" / "fine" / "manifest.json").read_text())
+    assert fine["flat_cells"] == int((share < 0.9).sum())
+    assert "fine/coefficients.npy" in json.loads((tmp_path / "isf" / "manifest.json").read_text())["outputs"]
+    # the ISF the other stages load: T as a plain array, the fine operator against it
+    assert load_isf(tmp_path / "isf").T.shape == T.shape
+
+
+def test_flagged_and_duplicate_beams_are_dropped_with_a_warning(runs, tmp_path, caplog):
+    root, sim = runs[16]
+    spots = tmp_path / "spots"
+    shutil.copytree(root / "spots", spots)
+    lines = (spots / "spots.csv").read_text().splitlines()
+    fields = lines[4].split(",")
+    lines[4] = ",".join(fields[:-1] + ["multiple=0.4"])                     # beam 3 flagged
+    f7, f8 = lines[8].split(","), lines[9].split(",")
+    lines[9] = ",".join([f8[0], str(float(f7[1]) + 0.5), f7[2]] + f8[3:])   # beam 8 on top of beam 7
+    (spots / "spots.csv").write_text("\n".join(lines) + "\n")
+    summary = build_isf(sim / "hdr", spots, tmp_path / "isf", workers=1)
+    assert [d["beam"] for d in summary["drops"]] == [3, 8]
+    assert "flagged: multiple=0.4" in summary["drops"][0]["reason"]
+    assert "near-duplicate" in summary["drops"][1]["reason"]
+    assert "dropping beam 3" in caplog.text and "dropping beam 8" in caplog.text
+    isf = load_isf(tmp_path / "isf")
+    assert isf.m == 14 and isf.layout == (1, 16) and list(isf.beams[:4]) == [0, 1, 2, 4]
+    manifest = json.loads((tmp_path / "isf" / "manifest.json").read_text())
+    assert manifest["drops"] == summary["drops"]
+    # a photo still decomposes, shown on the plan's strip with gaps
+    run("decompose", "--isf", tmp_path / "isf", sim / "photos" / "room.exr", "-o", tmp_path / "dec", "--no-cache")
+    strip, _ = read_exr(tmp_path / "dec" / "room" / "samples" / "bounce-1.exr")
+    assert strip.shape[:2] == (1, 16) and strip[0, 3, 0] == 0 and strip[0, 2, 0] > 0
+
+
+def _copy_hdr(runs, tmp_path):
+    hdr = tmp_path / "hdr"
+    shutil.copytree(runs[16][1] / "hdr", hdr)
+    return hdr
+
+
+@pytest.mark.parametrize("case", ["truncated", "sizes", "missing", "empty", "spots-beam"])
+def test_bad_input_fails_cleanly(runs, tmp_path, case):
+    root, _ = runs[16]
+    hdr = _copy_hdr(runs, tmp_path)
+    out = tmp_path / "out"
+    if case == "truncated":
+        data = (hdr / "beam-00005.exr").read_bytes()
+        (hdr / "beam-00005.exr").write_bytes(data[: len(data) // 2])
+        result = run("centroids", hdr, "-o", out, "--workers", 1, ok=False)
+        named = "beam-00005.exr"
+    elif case == "sizes":
+        write_exr(hdr / "beam-00007.exr", np.zeros((5, 5), np.float32))
+        result = run("centroids", hdr, "-o", out, "--workers", 1, ok=False)
+        named = "beam-00007.exr"
+    elif case == "missing":
+        (hdr / "beam-00009.exr").unlink()
+        result = run("centroids", hdr, "-o", out, "--workers", 1, ok=False)
+        named = "beam 9"
+    elif case == "empty":
+        empty = tmp_path / "empty"
+        empty.mkdir()
+        result = run("centroids", empty, "-o", out, ok=False)
+        named = str(empty)
+    else:
+        spots = tmp_path / "spots"
+        shutil.copytree(root / "spots", spots)
+        with open(spots / "spots.csv", "a") as f:
+            f.write("16,5.0,5.0,1.0,1.0,4,\n")
+        result = run("build-isf", hdr, spots, "-o", out, "--workers", 1, ok=False)
+        named = "beam 16"
+    assert result.exit_code == 1
+    message = result.output.strip().splitlines()[-1]
+    assert message.startswith("ilt: error:") and named in message, result.output
+    assert not out.exists() and not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+
+
+def test_pixel_mapping_from_headers_else_the_manifest_else_full_resolution(tmp_path):
+    from ilt.io.exr import write_exr
+    from ilt.io.frames import (
+        FULL_RESOLUTION,
+        FrameError,
+        PixelMapping,
+        open_hdr_directory,
+    )
+    from ilt.io.manifest import write_json
+
+    half = PixelMapping((0.5, 0.5), 2.0)
+    for name in ("plain", "manifest", "headers", "mixed"):
+        (tmp_path / name).mkdir()
+        for b in range(2):
+            attrs = half.attributes() if name == "headers" or (name == "mixed" and b) else {}
+            write_exr(tmp_path / name / f"beam-{b:05d}.exr", np.ones((4, 6)), attributes=attrs)
+    write_json(tmp_path / "manifest" / "manifest.json", {"pixel_mapping": half.as_dict()})
+    assert open_hdr_directory(tmp_path / "plain").mapping == FULL_RESOLUTION
+    assert open_hdr_directory(tmp_path / "manifest").mapping == half
+    assert open_hdr_directory(tmp_path / "headers").mapping == half
+    with pytest.raises(FrameError, match="beam-00001.exr: pixel mapping"):
+        open_hdr_directory(tmp_path / "mixed")
+    np.testing.assert_allclose(half.to_full(half.to_grid([[16.0, 10.5]])), [[16.0, 10.5]])
+    np.testing.assert_allclose(half.to_full([[3, 2]]), [[6.5, 4.5]])
+
+
+def test_centroids_and_isf_decode_once_and_agree_with_the_two_stages(runs, tmp_path):
+    """The combined run (every EXR decoded once, frames kept as scratch) writes the same
+    spots and the same T, bit for bit, as `ilt centroids` then `ilt build-isf`, in a
+    pool of 2 workers as in one, and removes its scratch frames."""
+    from ilt.isf.build import centroids_and_isf
+
+    root, sim = runs[16]
+    for workers in (1, 2):
+        out = tmp_path / f"j{workers}"
+        centroids_and_isf(sim / "hdr", out / "spots", out / "isf", workers=workers)
+        assert (out / "spots" / "spots.csv").read_text() == (root / "spots" / "spots.csv").read_text()
+        for name in ("T.npy", "scales.npy"):
+            assert np.array_equal(np.load(out / "isf" / name), np.load(root / "cell" / name)), (workers, name)
+        assert sorted(p.name for p in out.iterdir()) == ["isf", "spots"]
+
+
+@given(n=st.integers(0, 400), size=st.integers(1, 40))
+@settings(max_examples=200, deadline=None)
+def test_chunks_cover_every_beam_once_in_order_with_small_ones_last(n, size):
+    from ilt.parallel.chunks import chunks
+
+    parts = chunks(list(range(n)), size)
+    assert [b for part in parts for b in part] == list(range(n))
+    lengths = [len(p) for p in parts]
+    assert all(0 < k <= size for k in lengths)
+    small = max(1, size // 4)
+    assert sum(k < size for k in lengths) <= -(-min(n, 3 * size) // small)  # only the tail is split
+    assert lengths == sorted(lengths, reverse=True)
+
+
+def test_centroids_and_isf_when_the_disk_fills_while_keeping_frames(runs, tmp_path, monkeypatch, caplog):
+    """Frames that cannot be kept (disk full, after part of a frame was written) are left
+    out of the scratch's record and decoded again by build-isf: the same T, a warning
+    naming the file and beam, and no EXR frame ever removed."""
+    import errno
+    import logging
+
+    import ilt.io.frames
+    from ilt.isf.build import centroids_and_isf
+
+    root, sim = runs[16]
+    frames = sorted(p.name for p in (sim / "hdr").iterdir())
+    real_keep = ilt.io.frames.FrameScratch.keep
+    recorded = []
+
+    def keep(self, fd, beam, frame):  # beams 10 and after fail half-way
+        if beam >= 10:
+            os.pwrite(fd, b"\xff" * (frame.nbytes // 2), beam * self.frame_bytes)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_keep(self, fd, beam, frame)
+
+    real_kept = ilt.io.frames.FrameScratch.kept
+
+    def kept(self):
+        recorded.append(real_kept(self))
+        return recorded[-1]
+
+    monkeypatch.setattr(ilt.io.frames.FrameScratch, "keep", keep)
+    monkeypatch.setattr(ilt.io.frames.FrameScratch, "kept", kept)
+    with caplog.at_level(logging.WARNING, logger="ilt.spots"):
+        centroids_and_isf(sim / "hdr", tmp_path / "spots", tmp_path / "isf", workers=1)
+    assert any("No space left on device" in r.message and "beam 10" in r.message
+               and "build-isf will decode it again" in r.message for r in caplog.records)
+    assert recorded == [frozenset(range(10))]
+    for name in ("T.npy", "scales.npy"):
+        assert np.array_equal(np.load(tmp_path / "isf" / name), np.load(root / "cell" / name)), name
+    assert sorted(p.name for p in (sim / "hdr").iterdir()) == frames
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["isf", "spots"]
+
+
+def test_frame_scratch_keeps_frames_bit_for_bit_and_trusts_only_its_record(tmp_path):
+    """Frames written in any order read back identical; only recorded beams of the
+    recorded frame size count as kept; a frame of another size is refused."""
+    from ilt.io.frames import FrameError, FrameScratch
+
+    rng = np.random.default_rng(4)
+    frames = {b: rng.normal(size=(5, 7)).astype(np.float32) for b in (3, 0, 6)}
+    scratch = FrameScratch(tmp_path, (5, 7))
+    assert scratch.kept() == frozenset()  # nothing recorded yet
+    fd = scratch.open(write=True)
+    try:
+        for b, f in frames.items():
+            scratch.keep(fd, b, f)
+        with pytest.raises(FrameError, match="beam 2: frame of 7 x 6 pixels"):
+            scratch.keep(fd, 2, np.zeros((6, 7), np.float32))
+    finally:
+        os.close(fd)
+    scratch.record([6, 0, 3])
+    assert scratch.kept() == frozenset({0, 3, 6})
+    assert FrameScratch(tmp_path, (7, 5)).kept() == frozenset()  # another size: not these frames
+    fd = scratch.open()
+    try:
+        out = np.empty((5, 7), np.float32)
+        for b, f in frames.items():
+            assert np.array_equal(scratch.read(fd, b, out), f)
+        with pytest.raises(FrameError, match="beam 9"):
+            scratch.read(fd, 9, out)  # past the end of the file
+    finally:
+        os.close(fd)

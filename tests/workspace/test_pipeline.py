@@ -1,0 +1,126 @@
+"""`ilt run` / `ilt status` on a small simulated rig: skipping, staleness, workspace."""
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from ilt.cli import cli
+from ilt.io.workspace_dirs import Workspace
+from ilt.workspace.pipeline import load_run_config, workspace_status
+from tests.capture_helpers import SMALL_RIG, run_rig_toml
+
+
+def run(*args):
+    result = CliRunner().invoke(cli, list(args))
+    assert result.exit_code == 0, result.output
+    return result
+
+
+def stages_run(result) -> list[str]:
+    return [s["stage"] for s in json.loads(result.stdout) if s["ran"]]
+
+
+def test_first_run_writes_every_stage(workspace):
+    for sub in ("capture", "hdr", "spots", "isf", "photos", "decompose"):
+        assert (workspace / sub / "manifest.json").exists()
+    assert (workspace / "decompose" / "flashlight" / "bounce-1.exr").exists()
+    assert (workspace / "rig.toml").read_text() == SMALL_RIG
+
+
+def test_build_isf_reads_the_frames_centroids_kept_and_leaves_none(workspace, tmp_path):
+    """`ilt run` decodes every EXR once (centroids keeps the frames for build-isf): its T
+    is the one build-isf makes from the EXR files, and the scratch copies are gone."""
+    import numpy as np
+
+    from ilt.isf.build import build_isf
+    from ilt.workspace.pipeline import SCRATCH_DIR
+
+    assert not (workspace / SCRATCH_DIR).exists()
+    build_isf(workspace / "hdr", workspace / "spots", tmp_path / "isf", workers=1)
+    for name in ("T.npy", "scales.npy"):
+        assert np.array_equal(np.load(workspace / "isf" / name), np.load(tmp_path / "isf" / name)), name
+
+
+def test_second_run_skips_every_stage(workspace):
+    result = run("run", "-w", str(workspace), "--json")
+    assert stages_run(result) == []
+    assert "every stage was up to date" in result.stderr
+    status = run("status", "-w", str(workspace)).stdout
+    assert status.count("done") == 6, status
+
+
+def test_changed_merge_parameter_reruns_merge_and_after(workspace, tmp_path):
+    changed = tmp_path / "changed.toml"
+    changed.write_text(SMALL_RIG + "\n[merge]\nmargin = 0.05\n")
+    status = json.loads(run("status", str(changed), "-w", str(workspace), "--json").stdout)
+    states = {s["stage"]: s for s in status}
+    assert states["capture"]["state"] == "done" and states["photos"]["state"] == "stale"
+    assert states["merge"]["state"] == "stale" and "margin" in states["merge"]["reason"]
+    assert states["centroids"]["reason"] == "after merge"
+    capture_log = (workspace / "capture" / "capture.jsonl").read_text()
+    result = run("run", str(changed), "-w", str(workspace), "--json")
+    assert stages_run(result) == ["merge", "centroids", "build-isf", "photos", "decompose"]
+    assert (workspace / "capture" / "capture.jsonl").read_text() == capture_log
+    assert stages_run(run("run", "-w", str(workspace), "--json")) == []
+    (workspace / "rig.toml").write_text(SMALL_RIG)  # back, for the tests after this one
+    assert stages_run(run("run", "-w", str(workspace), "--json"))[0] == "merge"
+
+
+def test_status_reports_missing_and_incomplete(tmp_path):
+    (tmp_path / "rig.toml").write_text(SMALL_RIG)
+    (tmp_path / "capture" / "beam-00000").mkdir(parents=True)
+    states = workspace_status(Workspace(tmp_path), load_run_config(tmp_path / "rig.toml"))
+    assert [s.state for s in states] == ["missing"] * 6
+    assert "incomplete" in states[0].reason
+
+
+def test_changed_scan_is_not_overwritten_without_force(workspace, tmp_path):
+    other = tmp_path / "other.toml"
+    other.write_text(SMALL_RIG.replace("1/125", "1/250"))
+    result = CliRunner().invoke(cli, ["run", str(other), "-w", str(workspace)])
+    assert result.exit_code == 1 and "--force" in result.output
+    assert (workspace / "rig.toml").read_text() == SMALL_RIG     # a refused run changes nothing
+
+
+def test_unknown_stage_option_names_the_key(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SMALL_RIG + "\n[merge]\nmargins = 0.05\n")
+    result = CliRunner().invoke(cli, ["status", str(bad), "-w", str(tmp_path)])
+    assert result.exit_code == 1 and "margins" in result.output
+
+
+def test_no_config_is_a_one_line_error(tmp_path):
+    result = CliRunner().invoke(cli, ["status", "-w", str(tmp_path)])
+    assert result.exit_code == 1 and "rig.toml" in result.output
+
+
+def test_quiet_and_no_progress_bars_off_a_terminal(workspace, tmp_path):
+    quiet = CliRunner().invoke(cli, ["-q", "run", "-w", str(workspace)])
+    assert quiet.exit_code == 0 and quiet.stderr == "", quiet.stderr
+    spots = ["centroids", str(workspace / "hdr"), "-o", str(tmp_path / "spots"), "--workers", "1"]
+    logged = CliRunner().invoke(cli, spots)          # stderr is not a terminal here
+    assert logged.exit_code == 0 and "\r" not in logged.stderr and "[" not in logged.stderr, logged.stderr
+    assert CliRunner().invoke(cli, ["-q", *spots, "--force"]).stderr == ""
+
+
+@pytest.mark.parametrize("section, value, message", [
+    ("merge", "margin = 0.9", r"\[merge\]: margin = 0.9: 0.9 is not in the range 0<=x<=0.5"),
+    ("merge", "color = 1", r"\[merge\]: color = 1: must be true or false"),
+    ("merge", 'compression = "b44"', r"\[merge\]: compression = 'b44': 'b44' is not one of"),
+    ("build-isf", "fine-degree = 1.5", r"\[build-isf\]: fine_degree = 1.5: must be a whole number"),
+    ("centroids", "workers = 0", r"\[centroids\]: workers = 0: 0 is not in the range x>=1"),
+    ("decompose", "bounces = true", r"\[decompose\]: bounces = True: must be a number"),
+])
+def test_stage_values_are_checked_as_the_command_line_checks_them(tmp_path, section, value, message):
+    """A value the stage's command would refuse is refused in the config, naming the
+    file, section and key, before anything runs; one it accepts is kept as written."""
+    from ilt.capture.config import ConfigError
+    from ilt.workspace.pipeline import load_run_config
+
+    (tmp_path / "rig.toml").write_text(run_rig_toml(16, 8, "", f"[{section}]\n{value}\n"))
+    with pytest.raises(ConfigError, match=message):
+        load_run_config(tmp_path / "rig.toml")
+    (tmp_path / "ok.toml").write_text(run_rig_toml(16, 8, "", "[merge]\nmargin = 0\n"))
+    margin = load_run_config(tmp_path / "ok.toml").merge["margin"]
+    assert margin == 0 and isinstance(margin, int)

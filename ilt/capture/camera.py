@@ -273,4 +273,3 @@ def check_sim_camera(cfg) -> None:
     beams = planned_beams(cfg.plan)
     require(render_bytes(cfg.camera.scene, beams, DEFAULT_FINE, cfg.camera.px_per_beam, SUPERSAMPLE),
             f"{cfg.path}: the simulated camera's scene {cfg.camera.scene!r} for {beams} beams")
-

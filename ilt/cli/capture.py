@@ -62,4 +62,3 @@ def command(config, output, resume, workspace, as_json):
         log.info("adaptive bracketing skipped %d of %d exposures (%.0f%%), about %.1f s saved",
                  skipped, full, 100 * skipped / full, summary["seconds_saved"])
     emit(as_json, summary, [summary["output"]])
-

@@ -61,5 +61,3 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     out["coverage"] = coverage.reshape(fine.shape)
     return {name: out[name] for name in [f"bounce-{n}" for n in range(1, count + 1)]
             + ["indirect", "residual", "coverage"]}
-
-

@@ -425,14 +425,13 @@ def decompose(
         raise InputError(f"two inputs share a name ({stems}); their results would collide in {out}")
     out = Path(out)
     fingerprint = fingerprint_array(np.asarray(isf.T))
-    parameters = {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
-                  "samples_only": samples_only, "fine": _fine_fingerprint(isf, samples_only)}
+    parameters = decompose_parameters(isf, n_bounces, tol, solver, noise, regularise, samples_only)
     hashes = {photo.name: fingerprint_file(photo.path) for photo in photos}   # each photo read once
     done = {}
     for photo in photos:
         if (out / photo.name).exists() and not force:
             wanted = {hashes[photo.name], fingerprint}
-            previous = _previous_result(out / photo.name, parameters, wanted)
+            previous = previous_result(out / photo.name, parameters, wanted)
             if previous is None:
                 raise InputError(f"{out / photo.name} exists and was not made from {photo.path} with these "
                                  "options and this ISF; use --force to replace it")
@@ -493,14 +492,18 @@ def decompose(
     return [done.get(p.name) or summaries[p.name] for p in photos]
 
 
-def _fine_fingerprint(isf: ISF, samples_only: bool) -> str | None:
-    """The fine operator a decomposition used, by its manifest's hash (None: none), so a
+def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver: str = "auto",
+                         noise: float | None = None, regularise: bool = False, samples_only: bool = False) -> dict:
+    """What a photo's ``manifest.json`` records as the parameters of its decomposition:
+    the options, and the fine operator used by its manifest's hash (None: none), so a
     re-run after ``fine/`` was built or rebuilt is not taken for one already done."""
     manifest = Path(isf.path).parent / FINE_DIR / MANIFEST
-    return None if samples_only or not manifest.exists() else fingerprint_file(manifest)
+    fine = None if samples_only or not manifest.exists() else fingerprint_file(manifest)
+    return {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
+            "samples_only": samples_only, "fine": fine}
 
 
-def _previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dict | None:
+def previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dict | None:
     """The summary of an earlier decomposition in ``directory`` when its manifest records
     ``parameters`` and exactly the fingerprints ``inputs`` (photo and T), else None."""
     try:
@@ -511,6 +514,39 @@ def _previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dic
     if manifest.get("parameters") != parameters or set(manifest.get("inputs", {}).values()) != inputs:
         return None
     return {**summary, "output": str(directory), "skipped": True}
+
+
+def not_decomposed(out: str | os.PathLike, isf: ISF, photos: list[str | os.PathLike], **options) -> str | None:
+    """Why ``out`` does not hold a decomposition of every one of ``photos`` with this ISF
+    and these options (``n_bounces``, ``tol``, ``solver``, ``noise``, ``regularise``,
+    ``samples_only``, as :func:`decompose` takes them): the photos it lacks, and for
+    those it holds otherwise, the parameters that differ. None when it holds them all,
+    as ``ilt decompose`` run by hand leaves them. Reads each photo and T once, for
+    their fingerprints."""
+    out = Path(out)
+    parameters = decompose_parameters(isf, **options)
+    fingerprint = fingerprint_array(np.asarray(isf.T))
+    lacking = []
+    for photo in map(Path, photos):
+        directory, photo_hash = out / photo.stem, fingerprint_file(photo)
+        if previous_result(directory, parameters, {photo_hash, fingerprint}) is not None:
+            continue
+        try:
+            manifest = read_manifest(directory)
+        except (OSError, StageError):
+            lacking.append(f"{photo.name} not decomposed")
+            continue
+        recorded, inputs = manifest.get("parameters", {}), set(manifest.get("inputs", {}).values())
+        changed = [f"{k} {recorded.get(k)!r} (wanted {v!r})" for k, v in parameters.items() if recorded.get(k) != v]
+        if changed:
+            lacking.append(f"{photo.name} decomposed with {', '.join(changed)}")
+        elif photo_hash not in inputs:
+            lacking.append(f"{photo.name} changed since it was decomposed")
+        elif fingerprint not in inputs:
+            lacking.append(f"{photo.name} decomposed with another T")
+        else:
+            lacking.append(f"{directory / 'summary.json'} is not readable")
+    return "; ".join(lacking) or None
 
 
 __all__ = ["decompose", "read_photo", "load_operator", "InputError", "TransportError", "default_cache_dir"]

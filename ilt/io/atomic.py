@@ -108,5 +108,3 @@ def make_temporary_directory(parent: Path, name: str, kind: str) -> Path:
             return path
         except FileExistsError:
             continue
-
-

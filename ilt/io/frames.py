@@ -37,8 +37,6 @@ class FrameError(ValueError):
     """An HDR directory or frame that cannot be used; the message names the file or beam."""
 
 
-
-
 @dataclass(frozen=True)
 class PixelMapping:
     """Frame pixel (row i, column j) lies at full-frame (x, y) = origin + scale * (j, i).
@@ -287,15 +285,3 @@ def load_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None,
         return frame
     np.copyto(out, frame)
     return out
-
-
-
-
-
-
-
-
-
-
-
-

@@ -209,15 +209,16 @@ def stage_state(directory: str | os.PathLike, stage: str, parameters: dict,
 
 def run_stage(directory: str | os.PathLike, stage: str, parameters: dict, inputs: dict[str, str],
               make: Callable[[], object], *, force: bool = False,
-              evidence: dict[str, str] | None = None) -> tuple[bool, StageState]:
+              evidence: dict[str, str] | None = None, state: StageState | None = None) -> tuple[bool, StageState]:
     """Run ``make()`` (which writes ``directory`` completely, replacing it) unless the
     stage is up to date; then record the run. Returns (ran, the state before).
 
     Logs ``<stage>: up to date`` when skipped, else what made it run. A stage a
     command made by hand that is up to date (see :func:`stage_state`) gets its run
-    record here, as if ``ilt run`` had made it.
+    record here, as if ``ilt run`` had made it. ``state``: the stage's
+    :func:`stage_state` for these ``inputs`` when the caller found it already.
     """
-    before = stage_state(directory, stage, parameters, inputs, evidence)
+    before = state or stage_state(directory, stage, parameters, inputs, evidence)
     if before.done and not force:
         log.info("%s: up to date (%s)", stage, directory)
         if read_record(directory) is None:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from ilt.io.atomic import TEMPORARY, make_temporary_directory, remove_lost_temporaries, remove_stale_temporaries
 from ilt.io.manifest import LOG_NAME, MANIFEST, RECORD, StageError, read_manifest
+from ilt.io.workspace_dirs import workspace_marks
 
 #: how many of the files a refusal names
 _NAMED = 5
@@ -47,26 +48,45 @@ def _manifest_or_none(directory: Path) -> dict | None:
     return manifest if isinstance(manifest, dict) else None
 
 
-def _foreign(directory: Path, files: list[str]) -> list[str]:
-    """The files of ``directory`` that are not its stage's own.
+def _owner(directory: Path, files: list[str]) -> tuple[str | None, set[str]]:
+    """The stage that wrote ``directory`` (None: none) and the files that are its own.
 
-    Own are: the files its manifest lists as outputs; those listed by the manifest of a
-    sub-directory of the same stage (``decompose/<photo>/`` that ``ilt decompose`` adds
-    to the ``decompose/`` of ``ilt run``); a sub-directory's manifest.json beside an own
-    file (``isf/fine/``, ``photos/raw/<kind>/``); the run record; ilt's temporary files
-    and what lies in its temporary directories (a killed ``ilt decompose``'s).
-    A directory without a readable manifest owns nothing.
+    Own are the files its manifest lists as outputs, and those listed by the manifest
+    of a sub-directory of the same stage (``decompose/<photo>/`` that ``ilt decompose``
+    adds to the ``decompose/`` of ``ilt run``). A directory without a readable manifest
+    of its own is a stage's when the manifests of its sub-directories all name that one
+    stage (the ``decompose/`` that ``ilt decompose`` run by hand fills); else it owns
+    nothing.
     """
-    top = _manifest_or_none(directory)
-    if top is None:
-        return files
-    own = set(top.get("outputs", {}))
+    subs = []
     for name in files:
         path = Path(name)
         if path.name == MANIFEST and len(path.parts) > 1:
-            sub = _manifest_or_none(directory / path.parent)
-            if sub is not None and sub.get("stage") == top.get("stage"):
-                own |= {(path.parent / o).as_posix() for o in sub.get("outputs", {})}
+            if (sub := _manifest_or_none(directory / path.parent)) is not None:
+                subs.append((path.parent, sub))
+    top = _manifest_or_none(directory)
+    if top is not None:
+        stage, own = top.get("stage"), set(top.get("outputs", {}))
+    else:
+        stages = {sub.get("stage") for _, sub in subs}
+        if len(stages) != 1:
+            return None, set()
+        stage, own = stages.pop(), set()
+    for parent, sub in subs:
+        if sub.get("stage") == stage:
+            own |= {(parent / o).as_posix() for o in sub.get("outputs", {})}
+    return stage, own
+
+
+def _foreign(directory: Path, files: list[str]) -> list[str]:
+    """The files of ``directory`` that are not its stage's own (:func:`_owner`), nor a
+    sub-directory's manifest.json beside an own file (``isf/fine/``,
+    ``photos/raw/<kind>/``), the run record, ilt's temporary files or what lies in its
+    temporary directories (a killed ``ilt decompose``'s).
+    """
+    stage, own = _owner(directory, files)
+    if stage is None:
+        return files
     own_dirs = {Path(name).parent for name in own}
     return [name for name in files
             if name not in own and name not in (MANIFEST, RECORD)
@@ -76,8 +96,6 @@ def _foreign(directory: Path, files: list[str]) -> list[str]:
 
 def _refusal(final: Path) -> str | None:
     """Why ``final`` may not be replaced by a stage's output, or None when it may."""
-    from ilt.io.workspace_dirs import workspace_marks
-
     resolved = final.resolve()
     cwd = Path.cwd().resolve()
     if resolved == cwd or resolved in cwd.parents:
@@ -100,8 +118,8 @@ def _refusal(final: Path) -> str | None:
 
 
 def _stage(directory: Path) -> str | None:
-    """The stage ``directory``'s manifest names (None: no manifest)."""
-    return (_manifest_or_none(directory) or {}).get("stage")
+    """The stage that wrote ``directory`` (:func:`_owner`; None: none)."""
+    return _owner(directory, _files(directory))[0]
 
 
 def _quoted(stage: str | None) -> str:
@@ -151,5 +169,3 @@ def staged_directory(final: str | os.PathLike, force: bool = False) -> Iterator[
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-
-

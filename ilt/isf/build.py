@@ -28,6 +28,7 @@ from ilt.io.manifest import (
     MANIFEST,
     fingerprint_array,
     fingerprint_file,
+    fingerprint_npy,
     read_manifest,
     save_npy,
     write_manifest,
@@ -260,13 +261,17 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         if kept:  # every kept frame is read: free its disk while the outputs are written
             _in_background(scratch.path.unlink, missing_ok=True)
         T.flush()
+        # T's file hash (the manifest's) and array fingerprint (the fine operator's) from one read
+        hashed = {}
+        hashed[T_FILE], t_fingerprint = fingerprint_npy(tmp / T_FILE)
         if fine_degree is not None:
             share = None
             if accumulator is not None:
                 share = accumulator.finish()
                 accumulator.out.flush()
                 del accumulator
-            write_fine(tmp, fine_degree, T, fingerprint_array(labels), frames_inputs(hdr.path, out), share)
+            hashed.update(write_fine(tmp, fine_degree, m, t_fingerprint, fingerprint_array(labels),
+                                     frames_inputs(hdr.path, out), share))
         fields = {"sampling": sampling, "beams": plan, "drops": drops,
                   "pixel_mapping": hdr.mapping.as_dict()}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
@@ -280,7 +285,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             inputs = {str(spots_dir / SPOTS_FILE): spots_manifest["outputs"].get(SPOTS_FILE, ""),
                       str(spots_dir / MANIFEST): fingerprint_file(spots_dir / MANIFEST),
                       **spots_manifest.get("inputs", {})}
-        write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields})
+        write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields}, hashed=hashed)
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
 
 

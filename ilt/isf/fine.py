@@ -205,21 +205,24 @@ class FineAccumulator:
         return share
 
 
-def write_fine(directory: Path, degree: int, T: np.ndarray, labels_fingerprint: str, frames: dict,
-               share: np.ndarray | None = None) -> None:
+def write_fine(directory: Path, degree: int, m: int, t_fingerprint: str, labels_fingerprint: str, frames: dict,
+               share: np.ndarray | None = None) -> dict[str, str]:
     """The manifest of ``directory/fine/`` (the build wrote coefficients.npy there, a
     memory map filled by :class:`FineAccumulator`; none for degree 0): the degree and the
-    fingerprints of what it was built from (T, the cells, the frames' directory), checked
-    by :func:`load_fine`."""
+    fingerprints of what it was built from (T by its :func:`~ilt.io.manifest.fingerprint_array`,
+    the cells, the frames' directory), checked by :func:`load_fine`. Returns the
+    fingerprints of the files it lists, by their paths relative to ``directory`` (the
+    ISF's manifest takes them instead of reading the files again)."""
     from ilt.io.manifest import write_manifest
 
     fine = Path(directory) / FINE_DIR
     fine.mkdir(exist_ok=True)
     write_manifest(fine, "fine-operator", {"degree": degree},
-                   inputs={"T": fingerprint_array(np.asarray(T)), "cells": labels_fingerprint, **frames},
-                   extra={"terms": basis_terms(degree), "m": int(T.shape[0]),
-                          "flat_cells": int((share < MIN_EXPLAINED).sum()) if share is not None else int(T.shape[0]),
+                   inputs={"T": t_fingerprint, "cells": labels_fingerprint, **frames},
+                   extra={"terms": basis_terms(degree), "m": m,
+                          "flat_cells": int((share < MIN_EXPLAINED).sum()) if share is not None else m,
                           "min_explained": MIN_EXPLAINED})
+    return {f"{FINE_DIR}/{name}": fingerprint for name, fingerprint in read_manifest(fine)["outputs"].items()}
 
 
 @dataclass(frozen=True)
@@ -313,8 +316,6 @@ def load_fine(isf, t_fingerprint: str | None = None) -> tuple[FineOperator | Non
     else:
         raise FineError(f"{directory / MANIFEST}: degree {degree} unknown (known: {DEGREES})")
     return FineOperator(directory, CellGeometry.from_labels(isf.cells, m), degree, coefficients), ""
-
-
 
 
 def frames_inputs(hdr_path: str | os.PathLike, isf_dir: str | os.PathLike) -> dict:

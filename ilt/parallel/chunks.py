@@ -141,5 +141,3 @@ def _beam_list(beams: Sequence[int]) -> str:
             runs.append([b, b])
     text = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
     return f"beam{'s' if len(beams) > 1 else ''} {text}"
-
-

@@ -33,9 +33,6 @@ from ilt.spots.table import Spot
 log = logging.getLogger(__name__)
 
 
-
-
-
 @dataclass(frozen=True)
 class SpotParameters:
     """What counts as a clean spot.
@@ -60,8 +57,6 @@ class SpotParameters:
     saturation: float | None = None
     roi: tuple[float, float, float, float] | None = None
     refine: bool = False
-
-
 
 
 #: pixels of a flat top (within this relative distance of the max) that mean clipping
@@ -420,43 +415,4 @@ def _gaussian_refine(values, gx, gy, cx, cy, sigma) -> tuple[float, float]:
     return cx, cy
 
 
-
-
-
-
-
-
-
-
-
-
-
-
 # ---------------------------------------------------------------------- the stage
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-

@@ -322,5 +322,3 @@ def draw_overlay(path: Path, background: np.ndarray, spots: list[Spot], mapping=
 
 
 _DARK_CACHE: dict = {}
-
-

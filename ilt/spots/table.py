@@ -97,5 +97,3 @@ def read_spots(path: str | os.PathLike) -> tuple[list[int], list[Spot]]:
 
 def spot_dict(spot: Spot) -> dict:
     return asdict(spot)
-
-

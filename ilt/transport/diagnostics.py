@@ -162,5 +162,3 @@ def decomposition_diagnostics(photo: np.ndarray, decomposition: Decomposition) -
         "most_negative": most_negative.tolist(),
         "warnings": warnings,
     }
-
-

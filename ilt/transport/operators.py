@@ -41,8 +41,6 @@ __all__ = [
 _DIAG_BLOCK = 256
 
 
-
-
 class UnitColumnOperator:
     """What every back-end of ``C1`` derives from ``t1_unit`` and ``column_norms``."""
 
@@ -121,16 +119,6 @@ def check_photo(m: int, values: np.ndarray) -> None:
     if not np.all(np.isfinite(values)):
         bad = np.argwhere(~np.isfinite(values))[0]
         raise TransportError(f"sample vector holds a non-finite value at index {tuple(int(i) for i in bad)}")
-
-
-
-
-
-
-
-
-
-
 
 
 def one_norm_estimate(operator, columns: int = 4) -> float:
@@ -313,15 +301,3 @@ def bounce_images(
         tol=tol,
         stopped_early=stopped,
     )
-
-
-
-
-
-
-
-
-
-
-
-

@@ -331,8 +331,6 @@ def build_operator(T: np.ndarray | IsfMatrix, solver: str = "auto", noise: float
     return cancellation_operator(isf), reason
 
 
-
-
 def estimate_noise(T: np.ndarray | IsfMatrix) -> float | None:
     """Noise floor of a measured T (unit columns), from its negative entries.
 

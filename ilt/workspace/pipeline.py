@@ -27,6 +27,7 @@ import os
 import time
 import tomllib
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,7 +36,7 @@ import numpy as np
 from ilt.capture.config import ConfigError, RigConfig, parse_config
 from ilt.capture.loop import capture
 from ilt.io.atomic import atomic_path
-from ilt.io.manifest import LOG_NAME, StageError, fingerprint_file, write_manifest
+from ilt.io.manifest import LOG_NAME, MANIFEST, StageError, fingerprint_file, write_manifest
 from ilt.io.stage import (
     DONE,
     MISSING,
@@ -167,13 +168,22 @@ def merge_options(options: dict):
 
 @dataclass
 class Stage:
-    """One stage of a run: its directory, parameters, input directories/files and maker."""
+    """One stage of a run: its directory, parameters, input directories/files and maker.
+
+    ``by_hand``: for a directory the stage's own command filled without the stage's
+    manifest (``ilt decompose`` run by hand writes ``decompose/<photo>/`` only): None
+    when it holds what the stage would write, else why not.
+    """
 
     name: str
     directory: Path
     parameters: dict
     inputs: dict[str, Path]
     make: object = None
+    by_hand: Callable[[], str | None] | None = None
+
+    def made_by_hand(self) -> bool:
+        return self.by_hand is not None and self.directory.is_dir() and not (self.directory / MANIFEST).exists()
 
 
 def no_progress(length: int, label: str):
@@ -192,7 +202,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     ``workers`` (the solver: threads of this process).
     """
     from ilt.capture.plan import planned_beams
-    from ilt.decompose.stage import decompose, default_cache_dir
+    from ilt.decompose.stage import decompose, default_cache_dir, not_decomposed
     from ilt.hdr.stages import merge_capture
     from ilt.isf.build import build_isf
     from ilt.isf.directory import load_isf
@@ -236,12 +246,17 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
         finally:
             _remove_scratch(ws)
 
+    decompose_options = {"n_bounces": dec["n_bounces"], "tol": dec["tol"], "samples_only": dec["samples_only"]}
+
     def make_decompose():
         with staged_directory(d["decompose"], force=True) as tmp:
-            decompose(load_isf(d["build-isf"], mmap=True), photo_paths(ws, cfg), tmp, n_bounces=dec["n_bounces"],
-                      tol=dec["tol"], cache_dir=default_cache_dir(), force=True, samples_only=dec["samples_only"],
-                      executor=executor)
+            decompose(load_isf(d["build-isf"], mmap=True), photo_paths(ws, cfg), tmp, cache_dir=default_cache_dir(),
+                      force=True, executor=executor, **decompose_options)
             write_manifest(tmp, "decompose", fingerprinted(dec))
+
+    def decomposed_by_hand():
+        return not_decomposed(d["decompose"], load_isf(d["build-isf"], mmap=True), photo_paths(ws, cfg),
+                              **decompose_options)
 
     stages = [
         Stage("capture", d["capture"], capture_parameters(cfg.rig), {}),
@@ -259,7 +274,8 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
         if cfg.photo_kinds:
             inputs["photos"] = d["photos"]
         inputs.update({f"file {p.name}": p for p in cfg.photo_files})
-        stages.append(Stage("decompose", d["decompose"], fingerprinted(dec), inputs, make_decompose))
+        stages.append(Stage("decompose", d["decompose"], fingerprinted(dec), inputs, make_decompose,
+                            decomposed_by_hand))
     return stages
 
 
@@ -349,8 +365,17 @@ def _changed_state(stage: Stage, files: list[str]) -> StageState:
                       f"{shown} changed since {stage.name} wrote {'them' if len(files) > 1 else 'it'} ({fix})")
 
 
-def workspace_status(ws: Workspace, cfg: RunConfig, verify: str | None = None) -> list[StageState]:
-    """Each stage's state against ``cfg``; a stage after one that is not done cannot be done.
+@dataclass(frozen=True)
+class Assessment:
+    """A stage's state, with the input fingerprints it was judged on (None: not
+    fingerprinted, as after a stage that is not done)."""
+
+    state: StageState
+    inputs: dict[str, str] | None
+
+
+def assess_stages(stages: list[Stage], verify: str | None = None) -> list[Assessment]:
+    """Each stage's state; a stage after one that is not done cannot be done.
 
     ``verify``: "quick" checks that a done stage's files are the ones its manifest
     fingerprints, re-hashing only those whose size or modification time changed since
@@ -358,36 +383,66 @@ def workspace_status(ws: Workspace, cfg: RunConfig, verify: str | None = None) -
     ``changed`` (the stages after it are judged as usual: they were made from the
     files as they were).
     """
-    states: list[StageState] = []
+    out: list[Assessment] = []
     by_dir = {}
-    for stage in plan_stages(ws, cfg):
+    for stage in stages:
         blocked = [n for n, p in stage.inputs.items() if p in by_dir and by_dir[p].state not in (DONE, CHANGED)]
+        inputs = None
         if blocked:
             complete = (stage.directory / "manifest.json").exists()
             s = StageState(stage.name, str(stage.directory), STALE if complete else MISSING,
                            f"after {', '.join(by_dir[stage.inputs[n]].stage for n in blocked)}" if complete else "")
+        elif stage.made_by_hand():
+            s = _by_hand_state(stage)
         else:
             try:
-                s = stage_state(stage.directory, stage.name, stage.parameters, input_fingerprints(stage),
-                                input_evidences(stage))
+                inputs = input_fingerprints(stage)
+                s = stage_state(stage.directory, stage.name, stage.parameters, inputs, input_evidences(stage))
             except (StageError, OSError) as exc:
-                s = StageState(stage.name, str(stage.directory), MISSING, str(exc))
+                inputs, s = None, StageState(stage.name, str(stage.directory), MISSING, str(exc))
         if s.done and verify:
-            files = changed_outputs(stage.directory, full=verify == "full")
+            files = _changed_files(stage, full=verify == "full")
             if files:
                 s = _changed_state(stage, files)
-        states.append(s)
+        out.append(Assessment(s, inputs))
         by_dir[stage.directory] = s
-    return states
+    return out
 
 
-def check_unchanged(ws: Workspace, cfg: RunConfig) -> None:
+def _changed_files(stage: Stage, full: bool) -> list[str]:
+    """The files of a done stage that differ from its manifest (:func:`changed_outputs`);
+    for one made by hand, from the manifests of its sub-directories (they have no run
+    record: every file is hashed)."""
+    if not stage.made_by_hand():
+        return changed_outputs(stage.directory, full=full)
+    return [f"{sub.name}/{name}" for sub in sorted(stage.directory.iterdir()) if (sub / MANIFEST).is_file()
+            for name in changed_outputs(sub, full=full)]
+
+
+def _by_hand_state(stage: Stage) -> StageState:
+    """The state of a stage directory its command filled by hand (:attr:`Stage.by_hand`)."""
+    try:
+        why = stage.by_hand()
+    except (OSError, ValueError) as exc:
+        why = str(exc)
+    if why is None:
+        return StageState(stage.name, str(stage.directory), DONE)
+    return StageState(stage.name, str(stage.directory), STALE, f"made by hand: {why}")
+
+
+def workspace_status(ws: Workspace, cfg: RunConfig, verify: str | None = None) -> list[StageState]:
+    """Each stage's state against ``cfg`` (:func:`assess_stages`)."""
+    return [a.state for a in assess_stages(plan_stages(ws, cfg), verify)]
+
+
+def check_unchanged(assessed: list[Assessment]) -> None:
     """StageError naming the first file of a done stage that no longer matches its
-    manifest: a run must not build on it, nor call it up to date. A stat per file;
-    only files whose size or modification time moved are hashed."""
-    for s in workspace_status(ws, cfg, verify="quick"):
-        if s.state == CHANGED:
-            raise StageError(f"{s.directory}: {s.reason}")
+    manifest (``assessed`` with ``verify="quick"``: a stat per file, only files whose
+    size or modification time moved are hashed): a run must not build on it, nor call
+    it up to date."""
+    for a in assessed:
+        if a.state.state == CHANGED:
+            raise StageError(f"{a.state.directory}: {a.state.reason}")
 
 
 #: beside WORKSPACE/rig.toml: the fingerprint of the config `ilt run` last copied there
@@ -443,21 +498,21 @@ def install_config(ws: Workspace, cfg: RunConfig) -> None:
         tmp.write_text(fingerprint_file(ws.config) + "\n")
 
 
-def check_capture(stage: Stage, force: bool) -> StageState:
-    """The capture's state; StageError when the scan differs from the config and not ``force``."""
-    state = stage_state(stage.directory, "capture", stage.parameters)
+def check_capture(stage: Stage, force: bool, state: StageState | None = None) -> StageState:
+    """The capture's state (``state`` when the caller found it); StageError when the scan
+    differs from the config and not ``force``."""
+    state = state or stage_state(stage.directory, "capture", stage.parameters)
     if state.state == STALE and not force:
         raise StageError(f"{stage.directory}: {state.reason}; the scan differs from the config "
                          "(use --force to move it aside and scan again)")
     return state
 
 
-def run_capture(ws: Workspace, stage: Stage, cfg: RunConfig, force: bool, progress=no_progress) -> bool:
-    """The capture stage: resumed when interrupted; a scan that differs from the config
-    is moved aside (never deleted) only with ``force``."""
+def run_capture(stage: Stage, state: StageState, cfg: RunConfig, force: bool, progress=no_progress) -> bool:
+    """The capture stage, in ``state`` (:func:`check_capture`): resumed when interrupted;
+    a scan that differs from the config is moved aside (never deleted) only with ``force``."""
     from ilt.capture.camera import check_sim_camera
 
-    state = check_capture(stage, force)
     if state.done and not force:
         log.info("capture: up to date (%s)", stage.directory)
         if read_record(stage.directory) is None:  # shot by `ilt capture`: recorded as if run here
@@ -491,26 +546,40 @@ def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False, progress=no
     ``progress``, ``executor``: as :func:`plan_stages` takes them."""
     stages = plan_stages(ws, cfg, progress, executor)
     # before the config is installed: a refused run changes nothing
-    check_capture(stages[0], force)
-    if not force:  # --force writes every stage again (the scan moved aside): nothing is built on
-        check_unchanged(ws, cfg)
+    # --force writes every stage again (the scan moved aside): nothing is built on, no state kept
+    assessed = None if force else assess_stages(stages, verify="quick")
+    capture_state = check_capture(stages[0], force, assessed[0].state if assessed else None)
+    if assessed:
+        check_unchanged(assessed)
     install_config(ws, cfg)
     _remove_scratch(ws)  # frames a killed run kept
     try:
-        return _run_stages(ws, cfg, stages, force, progress)
+        return _run_stages(stages, capture_state, assessed, cfg, force, progress)
     finally:
         _remove_scratch(ws)
 
 
-def _run_stages(ws: Workspace, cfg: RunConfig, stages: list[Stage], force: bool, progress=no_progress) -> list[dict]:
+def _run_stages(stages: list[Stage], capture_state: StageState, assessed: list[Assessment] | None,
+                cfg: RunConfig, force: bool, progress=no_progress) -> list[dict]:
+    """Run the stages in order. Each stage's state is found once: the assessment made
+    before the run holds until a stage runs (its outputs are the next stages' inputs);
+    from then on each stage is judged as its turn comes."""
     summaries = []
-    for stage in stages:
+    known = assessed is not None
+    for k, stage in enumerate(stages):
         t0 = time.monotonic()
         if stage.name == "capture":
-            ran = run_capture(ws, stage, cfg, force, progress)
+            ran = run_capture(stage, capture_state, cfg, force, progress)
         else:
-            ran, _ = run_stage(stage.directory, stage.name, stage.parameters, input_fingerprints(stage),
-                               stage.make, force=force, evidence=input_evidences(stage))
+            state, inputs = (assessed[k].state, assessed[k].inputs) if known else (None, None)
+            if stage.made_by_hand():
+                state = state or _by_hand_state(stage)
+                if state.done:  # what the stage would write: given the stage's manifest, then recorded
+                    write_manifest(stage.directory, stage.name, stage.parameters)
+            inputs = input_fingerprints(stage) if inputs is None else inputs
+            ran, _ = run_stage(stage.directory, stage.name, stage.parameters, inputs, stage.make, force=force,
+                               evidence=None if state else input_evidences(stage), state=state)
+        known = known and not ran
         summaries.append({"stage": stage.name, "directory": str(stage.directory),
                           "ran": ran, "seconds": round(time.monotonic() - t0, 3)})
     return summaries
@@ -523,4 +592,3 @@ def workspace_config(ws: Workspace, config: str | os.PathLike | None) -> RunConf
         raise StageError(f"{path}: no config (give a rig TOML, e.g. configs/sim.toml)"
                          if config else f"{ws.root}: no {ws.config.name}; give a rig TOML to 'ilt run'")
     return load_run_config(path)
-

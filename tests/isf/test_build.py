@@ -3,6 +3,7 @@
 import json
 import os
 import shutil
+from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -151,6 +152,43 @@ def test_streamed_t_and_fine_coefficients_equal_the_whole_array_build(runs, tmp_
     assert "fine/coefficients.npy" in json.loads((tmp_path / "isf" / "manifest.json").read_text())["outputs"]
     # the ISF the other stages load: T as a plain array, the fine operator against it
     assert load_isf(tmp_path / "isf").T.shape == T.shape
+
+
+def test_t_is_hashed_once_for_both_manifests(runs, tmp_path, monkeypatch):
+    """build-isf reads T.npy once for its two fingerprints (the ISF manifest's file hash,
+    the fine operator's array fingerprint) and fine/coefficients.npy once (the fine
+    manifest's hash is the ISF manifest's too); each is what hashing the file afresh gives."""
+    import ilt.io.manifest as manifest
+    import ilt.isf.fine as fine_module
+
+    root, sim = runs[16]
+    hashed, real_file, real_array = [], manifest.fingerprint_file, manifest.fingerprint_array
+    monkeypatch.setattr(manifest, "fingerprint_file", lambda path, *a: hashed.append(Path(path).name) or
+                        real_file(path, *a))
+    for module in (manifest, fine_module):
+        monkeypatch.setattr(module, "fingerprint_array", lambda a: hashed.append(np.shape(a)) or real_array(a))
+    build_isf(sim / "hdr", root / "spots", tmp_path / "isf")
+    monkeypatch.undo()
+    m = json.loads((tmp_path / "isf" / "manifest.json").read_text())
+    T = np.load(tmp_path / "isf" / "T.npy")
+    assert hashed.count("T.npy") == 0 and hashed.count(T.shape) == 0 and hashed.count("coefficients.npy") == 1
+    assert m["outputs"]["T.npy"] == manifest.fingerprint_file(tmp_path / "isf" / "T.npy")
+    assert m["outputs"]["fine/coefficients.npy"] == manifest.fingerprint_file(tmp_path / "isf" / "fine" /
+                                                                              "coefficients.npy")
+    fine = json.loads((tmp_path / "isf" / "fine" / "manifest.json").read_text())
+    assert fine["inputs"]["T"] == manifest.fingerprint_array(T)
+
+
+def test_fingerprint_npy_is_the_file_hash_and_the_array_fingerprint(tmp_path):
+    from ilt.io.manifest import fingerprint_array, fingerprint_file, fingerprint_npy
+
+    a = np.random.default_rng(0).normal(size=(37, 5))
+    np.save(tmp_path / "a.npy", a)
+    assert fingerprint_npy(tmp_path / "a.npy", chunk=64) == (fingerprint_file(tmp_path / "a.npy"),
+                                                              fingerprint_array(a))
+    np.save(tmp_path / "f.npy", np.asfortranarray(a))
+    with pytest.raises(ValueError, match="f.npy: not a C-order"):
+        fingerprint_npy(tmp_path / "f.npy")
 
 
 def test_flagged_and_duplicate_beams_are_dropped_with_a_warning(runs, tmp_path, caplog):

@@ -50,6 +50,59 @@ def test_second_run_skips_every_stage(workspace):
     assert status.count("done") == 6, status
 
 
+def test_a_run_judges_each_stage_once(workspace, monkeypatch):
+    """`ilt run` finds each stage's state, and fingerprints its inputs, once: the
+    assessment made before the run (for a changed file) holds until a stage runs
+    (before: the capture three times, every other stage twice)."""
+    import ilt.io.stage as stage_module
+    import ilt.workspace.pipeline as pipeline
+
+    judged, fingerprinted = [], []
+    real_state, real_inputs = stage_module.stage_state, pipeline.input_fingerprints
+
+    def counting(directory, stage, *args, **kwargs):
+        judged.append(stage)
+        return real_state(directory, stage, *args, **kwargs)
+
+    monkeypatch.setattr(stage_module, "stage_state", counting)
+    monkeypatch.setattr(pipeline, "stage_state", counting)
+    monkeypatch.setattr(pipeline, "input_fingerprints", lambda s: fingerprinted.append(s.name) or real_inputs(s))
+    assert stages_run(run("run", "-w", str(workspace), "--json")) == []
+    every = ["capture", "merge", "centroids", "build-isf", "photos", "decompose"]
+    assert judged == every and fingerprinted == every
+
+
+def test_decompose_run_by_hand_is_done_when_it_holds_what_the_run_would(workspace, tmp_path):
+    """A decompose/ that `ilt decompose` filled by hand (no stage manifest of its own) is
+    done when every photo's manifest records this T, the photo and the config's options,
+    and stale, naming what differs, otherwise. `ilt run` then takes it as it is, or
+    replaces it: its files are ilt's own."""
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(workspace, ws)
+    shutil.rmtree(ws / "decompose")
+    photo = str(ws / "photos" / "flashlight.exr")
+
+    def decompose_state():
+        return json.loads(run("status", "-w", str(ws), "--json").stdout)[-1]
+
+    run("decompose", photo, "-w", str(ws))   # 8 bounces; the config asks for 4
+    state = decompose_state()
+    assert state["state"] == "stale" and "flashlight.exr decomposed with bounces 8 (wanted 4)" in state["reason"]
+    assert stages_run(run("run", "-w", str(ws), "--json")) == ["decompose"]   # replaced
+    assert json.loads((ws / "decompose" / "flashlight" / "manifest.json").read_text())["parameters"]["bounces"] == 4
+
+    shutil.rmtree(ws / "decompose")
+    run("decompose", photo, "-w", str(ws), "--bounces", "4")
+    assert decompose_state()["state"] == "done"
+    made = (ws / "decompose" / "flashlight" / "bounces.npy").stat().st_mtime_ns
+    assert stages_run(run("run", "-w", str(ws), "--json")) == []
+    assert (ws / "decompose" / "manifest.json").exists()
+    assert (ws / "decompose" / "flashlight" / "bounces.npy").stat().st_mtime_ns == made
+    assert run("status", "-w", str(ws), "--verify").stdout.count("done") == 6
+
+
 def test_changed_merge_parameter_reruns_merge_and_after(workspace, tmp_path):
     changed = tmp_path / "changed.toml"
     changed.write_text(SMALL_RIG + "\n[merge]\nmargin = 0.05\n")

@@ -1,4 +1,4 @@
-"""Speed, memory and size of the fine operator (full-resolution bounce images, ilt/fullres.py).
+"""Speed, memory and size of the fine operator (full-resolution bounce images, ilt/isf/fine.py, ilt/decompose/fullres.py).
 
     python benchmarks/bench_fullres.py [--quick] [--case build|memory|all]
            [--build-beams 1024 --build-size 640x480] [--memory-beams 4096 --memory-size 1280x960]

@@ -1,4 +1,4 @@
-"""Per-pixel accuracy of the full-resolution bounce images (ilt/fullres.py) against exact truth.
+"""Per-pixel accuracy of the full-resolution bounce images (ilt/isf/fine.py, ilt/decompose/fullres.py) against exact truth.
 
     python benchmarks/fullres_accuracy.py [--quick] [--json PATH] [--scratch DIR] [--keep]
                                           [--max-render-s 360] [--scenes m,box]

@@ -122,7 +122,7 @@ def _workspace(ctx, param, value):
 
 
 #: every stage command: ``workspace.resolve(path_given, stage)`` is the path given, else
-#: the stage's standard directory in the workspace (ilt/workspace.py)
+#: the stage's standard directory in the workspace (ilt/io/workspace_dirs.py)
 workspace_option = click.option(
     "-w", "--workspace", "workspace", type=click.Path(file_okay=False), default=".", show_default=True,
     callback=_workspace,

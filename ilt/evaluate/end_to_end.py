@@ -29,7 +29,7 @@ from ilt.io.frames import PixelMapping
 
 log = logging.getLogger(__name__)
 
-#: the merged frames' grid: one pixel per 2x2 Bayer cell (ilt/hdr/raw.py)
+#: the merged frames' grid: one pixel per 2x2 Bayer cell (ilt/io/raw.py)
 GREEN_GRID = PixelMapping((0.5, 0.5), 2.0)
 
 

@@ -76,7 +76,7 @@ class ClusterExecutor(cf.Executor):
     A lost scheduler fails every future it handed out with :class:`SchedulerLost`, at
     once: Dask cancels the tasks it knows of when the connection drops, but a task
     submitted while it tries to reconnect is never cancelled, and waiting for it hung
-    ``ilt merge`` in one of four runs of tests/test_cluster.py's stopped-scheduler test."""
+    ``ilt merge`` in one of four runs of tests/parallel/test_cluster.py's stopped-scheduler test."""
 
     #: consecutive chunks of a stage in one task (:func:`ilt.parallel.chunks.run_chunks`): a task
     #: costs a round trip through the scheduler, a few ms, against 80 ms for a chunk of

@@ -26,7 +26,7 @@ probing, :func:`_probe_error` estimates how far T1 can be off. For ``T = (I - A)
 ``I - diag(G)^-1 G`` with ``G = (I - A)^-1``, and ``G - I`` has eigenvalues
 ``lambda / (1 - lambda)`` for A's ``lambda``: the series needs roughly
 ``Re lambda < 1/2`` (``diag(G) > 1`` helps a little), where the bounce series of A
-itself needs ``|lambda| < 1``. The chain scene of tests/test_series.py gives
+itself needs ``|lambda| < 1``. The chain scene of tests/transport/test_series.py gives
 ``rho(B)`` = 0.11, 0.39, 0.82 for ``rho(A)`` = 0.1, 0.3, 0.5.
 """
 

@@ -1,4 +1,4 @@
-"""Stage skipping (ilt/stage.py): done / stale (why) / missing, cheap fingerprints."""
+"""Stage skipping (ilt/io/stage.py): done / stale (why) / missing, cheap fingerprints."""
 
 import json
 

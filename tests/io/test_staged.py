@@ -1,4 +1,4 @@
-"""Nothing a user made is ever lost (ilt/manifest.py staged_directory): a stage replaces
+"""Nothing a user made is ever lost (ilt/io/staged.py staged_directory): a stage replaces
 only its own earlier output or an empty directory, never a workspace, a raw capture,
 the current directory or a directory holding someone else's file, even with --force;
 what it writes follows the umask; temporaries of killed runs are removed by the next."""

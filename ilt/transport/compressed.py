@@ -767,7 +767,7 @@ def compressed_operator(T: np.ndarray | IsfMatrix, tol: float | None = None, poi
         A cluster's (:func:`ilt.parallel.cluster.executor_for`): the blocks are compressed and
         the leaves inverted there, as tasks that read T's file themselves (it must be on
         storage every worker sees at the same path; :func:`_compress_on`). The result
-        is the same, bit for bit, as in this process with T in memory. None, or a T
+        is the same, bit for bit, as in this process (T in memory or mapped). None, or a T
         that is not a memory-mapped file: threads of this process.
 
     Raises
@@ -850,16 +850,17 @@ def compressed_operator(T: np.ndarray | IsfMatrix, tol: float | None = None, poi
         nodes = sorted(root.walk(), key=lambda n: -n.size)  # the largest blocks first: threads finish together
         jobs = [(lambda n=n, s=s: compress(n, s)) if n.children else (lambda n=n: invert(n))
                 for n in nodes for s in ((0, 1) if n.children else (0,))]
-        if mapped and root.children:
-            # the root's two blocks, a quarter of T each, one after the other on every
-            # core's BLAS threads (box m = 16428: 1.56 s a block on two, 2.08 s on one; the
-            # build 10.1 s against 8.2-8.9 s side by side): a memory-mapped T is not held in
-            # memory, and neither are two quarters of it: the process holds a quarter of T
-            # plus a sixteenth a thread
-            for job in jobs[:2]:
-                job()
-            jobs, buffers.data = jobs[2:], None
         with one_blas_thread():
+            if mapped and root.children:
+                # the root's two blocks, a quarter of T each, one after the other: a
+                # memory-mapped T is not held in memory, and neither are two quarters of
+                # it: the process holds a quarter of T plus a sixteenth a thread. One
+                # BLAS thread, as every other block and every cluster task: the sums run
+                # in the same order, so the result is the same bit for bit however T
+                # came (box m = 16428: 2.08 s a block, 1.56 s on two BLAS threads)
+                for job in jobs[:2]:
+                    job()
+                jobs, buffers.data = jobs[2:], None
             _in_parallel(jobs, workers)
             compressed = time.perf_counter()
             root.factorise(split=_split_levels(workers))

@@ -15,28 +15,34 @@ from ilt.cli.options import emit, force_option, json_option, note
 @click.option("--order", type=click.IntRange(1, 10), default=None,
               help="Polynomial order (default: chosen on held-out pixels).")
 @click.option("--max-order", type=click.IntRange(1, 10), default=None,
-              help="Highest order tried (default 3 for RAW, 8 otherwise).")
+              help="Highest order tried (default 3 for RAW, 12 otherwise).")
 @click.option("--pin-span/--free-span", default=None,
               help="Keep the product of exposure ratios at the nominal one (default: on for "
                    "non-RAW images, off for RAW).")
+@click.option("--estimate-ratios/--trust-ratios", default=None,
+              help="Estimate the exposure ratios with f (default: on for RAW, whose f is close to "
+                   "linear; off for other images, where f and the ratios are ambiguous).")
 @click.option("--tolerance", type=click.FloatRange(min=0, min_open=True), default=1e-6, show_default=True,
               help="Stop when f changes by less than this at every M.")
 @click.option("--no-plot", is_flag=True, help="Do not write the PNG plot.")
 @force_option
 @json_option
-def command(inputs, output, times, order, max_order, pin_span, tolerance, no_plot, force, as_json):
+def command(inputs, output, times, order, max_order, pin_span, estimate_ratios, tolerance, no_plot, force,
+            as_json):
     """Estimate the inverse response f and true exposure ratios from IMAGES_OR_DIR.
 
     IMAGES_OR_DIR: the frames of one bracket (RAW, or 8/16-bit TIFF/PNG/JPEG), a beam
-    directory, or a capture directory (up to 8 beams pooled). Writes the polynomial
-    coefficients, measured exposure ratios, residual and max |f(M) - M|.
+    directory, or a capture directory (up to 8 beams pooled). f is monotone with
+    f(0) = 0 and f(1) = 1. Writes its polynomial coefficients (power and Bernstein
+    form), f sampled at 256 points, the exposure ratios, residual and max |f(M) - M|;
+    -o's directory is made if missing.
     """
     from ilt.hdr.stages import calibrate
     from ilt.io.exposure import parse_times
 
     path, result = calibrate(list(inputs), output, times=parse_times(times) if times else None,
                              order=order, max_order=max_order, pin_span=pin_span,
-                             tolerance=tolerance, plot=not no_plot, force=force)
+                             estimate_ratios=estimate_ratios, tolerance=tolerance, plot=not no_plot, force=force)
     note(f"ilt: order {result['order']}, residual {result['residual']:.3g}, "
          f"max |f(M) - M| = {result['linearity_error']:.3g}")
     emit(as_json, result, [str(path)])

@@ -1,4 +1,4 @@
-"""``ilt merge``: RAW brackets to linear float EXR, one per beam (docs/hdr.md)."""
+"""``ilt merge``: RAW (or 8/16-bit) brackets to linear float EXR, one per beam (docs/hdr.md)."""
 
 from __future__ import annotations
 
@@ -22,8 +22,12 @@ from ilt.workspace.options import MERGE
 @click.argument("inputs", nargs=-1, metavar="[CAPTURE_DIR | RAW_FILES...]", type=click.Path())
 @click.option("-o", "--output", default=None, type=click.Path(),
               help="HDR directory to write (default WORKSPACE/hdr; an .exr file with --bracket).")
-@click.option("--bracket", is_flag=True, help="RAW_FILES are the frames of one hand-shot bracket.")
-@click.option("--times", default=None, help="Exposure times for --bracket files without EXIF, e.g. 1/15,1/30.")
+@click.option("--bracket", is_flag=True,
+              help="RAW_FILES are the frames of one hand-shot bracket (RAW, or 8/16-bit TIFF/PNG/JPEG "
+                   "with --response).")
+@click.option("--times", default=None,
+              help="Exposure times of the --bracket files, e.g. 1/15,1/30; they override EXIF (with a warning "
+                   "where EXIF differs by more than 1/6 stop) and serve files whose EXIF has none or 0.")
 @click.option("--dark", type=click.Path(dir_okay=False), default=None, help="Dark frame for --bracket.")
 @click.option("--response", "response_path", type=click.Path(dir_okay=False), default=None,
               help="response.json from ilt calibrate (default: linear, nominal exposures).")
@@ -49,7 +53,9 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
     Dark frame subtracted, inverse response applied, noise-optimal weights
     (inverse variance), saturated and near-black samples left out. Beside each EXR:
     .valid.png (count of samples used) and .saturated.png (saturated in every frame).
-    With --bracket, RAW_FILES are one bracket's frames and -o names the .exr.
+    With --bracket, RAW_FILES are one bracket's frames and -o names the .exr (its
+    directory is made if missing); 8/16-bit TIFF, PNG or JPEG frames are merged pixel by
+    pixel through --response (required for 8-bit), --gain and --read-noise then in codes.
     """
     from ilt.hdr.merge import NoiseModel
     from ilt.hdr.stages import MergeOptions, load_response, merge_capture, merge_files

@@ -66,6 +66,7 @@ def merge_bracket(
     full_scale: float | None = None,
     black_floor: float | None = None,
     dark: np.ndarray | None = None,
+    slope: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Merge K exposures of one view into a linear radiance image.
 
@@ -82,6 +83,10 @@ def merge_bracket(
         1999, Eq. 3), applied to ``frame / full_scale``; None for linear RAW data.
     black_floor : DN below which a sample is near-black (default ``noise.floor``).
     dark : (h, w) black-subtracted DN of a dark frame, subtracted from every frame.
+    slope : f' on normalised values, for 8/16-bit frames through a ``response``: the
+        noise is then the code's (read noise and 1/12 DN^2 of quantisation, in codes),
+        carried through f, ``v_k = f'(M_k)^2 (s^2 + 1/12)`` in linear DN, with ``M_k`` the
+        code the first-pass radiance predicts (not the sample's own); shot noise as above.
 
     Returns
     -------
@@ -115,7 +120,7 @@ def merge_bracket(
             [f[rows] for f in frames], e,
             [_clipped(k, frames[k], rows, saturated, saturation) for k in range(K)],
             noise, response, full_scale, floor, None if dark is None else dark[rows], dtype,
-            radiance[rows], count[rows], all_clipped[rows])
+            radiance[rows], count[rows], all_clipped[rows], slope)
         any_unclipped |= u
         bright |= b
     if not any_unclipped:
@@ -130,7 +135,7 @@ STRIP_SAMPLES = 1 << 15
 
 
 def _merge_rows(frames, e, clipped, noise, response, full_scale, floor, dark, dtype,
-                radiance, count, all_clipped) -> tuple[bool, bool]:
+                radiance, count, all_clipped, slope=None) -> tuple[bool, bool]:
     """`merge_bracket` on a strip of rows, written into ``radiance``, ``count`` and
     ``all_clipped`` (views); returns (any sample unclipped, any sample above ``floor``)."""
     K = len(frames)
@@ -171,7 +176,11 @@ def _merge_rows(frames, e, clipped, noise, response, full_scale, floor, dark, dt
         use = (x0 > floor / ek) | ~seen  # near-black only where a longer sample exists
         seen |= unclipped[k]
         use &= unclipped[k]
-        np.add(signal, read / ek, out=weight)
+        if slope is None:
+            np.add(signal, read / ek, out=weight)
+        else:  # codes through f: the read and quantisation variance scaled by f'^2
+            predicted = np.clip(x0 * (ek / full_scale), 0.0, 1.0)
+            np.add(signal, read * _code_slope(slope, response, predicted) ** 2 / ek, out=weight)
         np.divide(use, weight, out=weight)
         np.multiply(weight, linear[k], out=tmp)
         num += tmp
@@ -184,6 +193,15 @@ def _merge_rows(frames, e, clipped, noise, response, full_scale, floor, dark, dt
         k_min = order[-1]
         radiance[all_clipped] = linear[k_min][all_clipped] / e[k_min]
     return bool(any_unclipped.any()), bright
+
+
+def _code_slope(slope, response, linear: np.ndarray) -> np.ndarray:
+    """f'(M) at the code M whose f(M) is ``linear`` (normalised): f is monotone, so M is
+    read off a table of f by interpolation."""
+    grid = np.linspace(0.0, 1.0, 1025)
+    table = np.maximum.accumulate(np.asarray(response(grid), dtype=np.float64))
+    m = np.interp(linear, table, grid)
+    return np.maximum(np.asarray(slope(m), dtype=np.float64), 1e-3).astype(linear.dtype, copy=False)
 
 
 def _ratio(num, den, fallback=None) -> np.ndarray:

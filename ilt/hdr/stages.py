@@ -11,6 +11,7 @@ import concurrent.futures as cf
 import hashlib
 import json
 import logging
+import math
 import os
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -20,7 +21,13 @@ import numpy as np
 
 from ilt.hdr.bracket import Bracket, list_beams, logged_fingerprints, read_beam
 from ilt.hdr.merge import MergeError, NoiseModel, merge_bracket
-from ilt.hdr.mitsunaga_nayar import CalibrationError, ResponseFit, fit_response, usable_samples
+from ilt.hdr.mitsunaga_nayar import (
+    RATIO_WARN_STOPS,
+    CalibrationError,
+    ResponseFit,
+    fit_response,
+    usable_samples,
+)
 from ilt.io.atomic import atomic_path
 from ilt.io.beams import FrameRecord
 from ilt.io.exr import write_exr, write_png
@@ -42,13 +49,22 @@ class Response:
 
     coefficients: np.ndarray
     exposures: dict[tuple[str, str], float] = field(default_factory=dict)
+    exponent: float = 1.0  # f(M) = sum c_n u^n with u = M^exponent
 
     def __call__(self, m):
-        return np.polynomial.polynomial.polyval(np.asarray(m, dtype=np.float64), self.coefficients)
+        u = np.asarray(m, dtype=np.float64) ** self.exponent
+        return np.polynomial.polynomial.polyval(u, self.coefficients)
+
+    def slope(self, m):
+        """f'(M), same shape (chain rule through u = M^exponent)."""
+        m = np.maximum(np.asarray(m, dtype=np.float64), 1e-12)
+        du = self.exponent * m ** (self.exponent - 1)
+        return np.polynomial.polynomial.polyval(m**self.exponent,
+                                                np.polynomial.polynomial.polyder(self.coefficients)) * du
 
     def is_identity(self) -> bool:
         c = self.coefficients
-        return len(c) == 2 and c[0] == 0 and c[1] == 1
+        return len(c) == 2 and c[0] == 0 and c[1] == 1 and self.exponent == 1
 
 
 def load_response(path: str | os.PathLike) -> Response:
@@ -57,6 +73,7 @@ def load_response(path: str | os.PathLike) -> Response:
     try:
         data = json.loads(path.read_text())
         c = np.asarray(data["coefficients"], dtype=np.float64)
+        exponent = float(data.get("exponent", 1.0))
         table = {(x["exposure_time"], x["f_number"]): float(x["relative_exposure"])
                  for x in data.get("exposures", [])}
     except FileNotFoundError:
@@ -65,7 +82,9 @@ def load_response(path: str | os.PathLike) -> Response:
         raise CalibrationError(f"{path}: not a response file written by ilt calibrate ({exc})") from None
     if c.ndim != 1 or c.size < 2 or not np.isfinite(c).all():
         raise CalibrationError(f"{path}: coefficients must be a list of at least two numbers")
-    return Response(c, table)
+    if not (math.isfinite(exponent) and exponent > 0):
+        raise CalibrationError(f"{path}: exponent {exponent!r} must be a positive number")
+    return Response(c, table, exponent)
 
 
 # ---------------------------------------------------------------- reading brackets
@@ -104,6 +123,54 @@ def read_frame(path: Path, record: FrameRecord | None = None, hand_time=None, *,
         image, saturated = read_color(path, margin, data=data)
         info = GreenInfo(**{**info.__dict__, "saturated": saturated})
     return Frame(image, info, fingerprint)
+
+
+def read_ldr_frame(path: Path, record: FrameRecord | None = None, hand_time=None, *,
+                   margin: float = SATURATION_MARGIN, color: bool = False,
+                   expected: str | None = None) -> Frame:
+    """Read an 8/16-bit TIFF, PNG or JPEG frame (OpenCV) as a :class:`Frame`: green (or
+    RGB) codes, black 0, white the code's maximum, every pixel its own sample
+    (origin (0, 0), scale 1). A code at the maximum counts as saturated."""
+    from ilt.io.exposure import read_exif, resolve_facts
+
+    image, top = _read_codes(path, MergeError)
+    fingerprint = fingerprint_file(path)
+    if expected is not None and fingerprint != expected:
+        raise RawError(f"{path}: its sha256 is not the one capture.jsonl logged when it was shot")
+    tags = read_exif(path)
+    facts = resolve_facts(path, record.exposure_time if record else None,
+                          record.f_number if record else None, tags, None, hand_time)
+    saturated = (image >= top - 0.5).any(axis=2) if image.ndim == 3 else image >= top - 0.5
+    if image.ndim == 3:
+        image = image[:, :, ::-1] if color else image[:, :, 1]  # OpenCV's BGR
+    elif color:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    info = GreenInfo(path, facts, str(tags.get("Image Make", "")).strip(), str(tags.get("Image Model", "")).strip(),
+                     saturated.shape, "", (0.0, 0.0, 0.0, 0.0), top, top, top - 0.5, saturated,
+                     origin=(0.0, 0.0), scale=1.0)
+    return Frame(np.ascontiguousarray(image, dtype=np.float32), info, fingerprint)
+
+
+def _read_codes(path: Path, error) -> tuple[np.ndarray, float]:
+    """(codes as read by OpenCV, their maximum) of an 8/16-bit image, OpenCV's own
+    warnings silenced (its TIFF reader logs every EXIF tag it does not know)."""
+    import cv2
+
+    if not path.is_file():
+        raise error(f"{path}: no such file")
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    if image is None:
+        raise error(f"{path}: not an image OpenCV can read (nor a RAW file by its suffix)")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise error(f"{path}: {image.dtype} pixels; 8- or 16-bit images are needed")
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = image[:, :, :3]
+    return image, float(np.iinfo(image.dtype).max)
 
 
 def check_same_camera(frames: list[Frame]) -> None:
@@ -159,10 +226,13 @@ def merge_frames(frames: list[Frame], dark: Frame | None, options: MergeOptions)
     images = [fr.image for fr in frames]
     if options.color:
         sat = [np.repeat(s[..., None], 3, axis=2) for s in sat]
+    ldr = frames[0].info.cfa == ""  # an 8/16-bit image: every pixel a sample, no CFA
+    noise = NoiseModel(options.noise.gain, options.noise.read_noise, sites=1) if ldr else options.noise
     try:
         radiance, count, saturated = merge_bracket(
-            images, exposures, sat, noise=options.noise, response=response,
-            full_scale=full_scale, dark=dark.image if dark else None)
+            images, exposures, sat, noise=noise, response=response,
+            full_scale=full_scale, dark=dark.image if dark else None,
+            slope=response.slope if (ldr and response is not None) else None)
     except MergeError as exc:
         names = ", ".join(fr.info.path.name for fr in frames)
         raise MergeError(f"{frames[0].info.path.parent}: {exc} ({names})") from None
@@ -170,8 +240,9 @@ def merge_frames(frames: list[Frame], dark: Frame | None, options: MergeOptions)
         count, saturated = count.min(axis=2), saturated.any(axis=2)
     first = frames[0].info
     attributes = {
-        "units": "DN per second at f/1 per photosite, black-subtracted (green)" if not options.color
-                 else "DN per second at f/1 per photosite, black-subtracted (camera RGB)",
+        "units": ("codes per second at f/1 through the inverse response, per pixel" if ldr else
+                  "DN per second at f/1 per photosite, black-subtracted")
+                 + (" (camera RGB)" if options.color else " (green)"),
         "frames": len(frames),
         "exposure_times": [fr.info.exposure.exposure_time for fr in frames],
         "f_numbers": [fr.info.exposure.f_number for fr in frames],
@@ -297,8 +368,14 @@ def _merge_one(index, beam_dir, out_dir, options, logged):
 def merge_files(paths: list[str | os.PathLike], output: str | os.PathLike,
                 options: MergeOptions = MergeOptions(), times: list[Fraction] | None = None,
                 dark: str | os.PathLike | None = None, force: bool = False) -> tuple[Path, dict]:
-    """Merge one hand-shot bracket (RAW files) into ``output`` (.exr) plus
-    ``<stem>.valid.png`` and ``<stem>.saturated.png`` beside it."""
+    """Merge one hand-shot bracket into ``output`` (.exr) plus ``<stem>.valid.png`` and
+    ``<stem>.saturated.png`` beside it, making ``output``'s directory if needed.
+
+    RAW files: the green of each 2x2 cell (or camera RGB). 8/16-bit TIFF, PNG or JPEG
+    files: every pixel (green, or RGB with ``color``), through the response from
+    ``ilt calibrate`` (required for 8-bit files, whose codes are not linear), with the
+    noise of a code carried through f (:func:`ilt.hdr.merge.merge_bracket`'s ``slope``).
+    """
     output = Path(output)
     if output.suffix.lower() != ".exr":
         raise MergeError(f"{output}: the output of --bracket must be an .exr file")
@@ -308,11 +385,22 @@ def merge_files(paths: list[str | os.PathLike], output: str | os.PathLike,
     for p in siblings:
         if p.exists() and not force:
             raise MergeError(f"{p} exists; use --force to replace it")
-    frames = [read_frame(Path(p), None, times[k] if times else None, margin=options.margin,
-                         color=options.color) for k, p in enumerate(paths)]
-    dark_frame = read_frame(Path(dark), None, max(times) if times else None, margin=options.margin,
-                            color=options.color) if dark else None
+    _check_writable_parent(output, MergeError)
+    raw = [Path(p).suffix.lower() in RAW_SUFFIXES for p in paths]
+    if any(raw) and not all(raw):
+        raise MergeError(f"{paths[raw.index(False)]}: a bracket mixes RAW and 8/16-bit files")
+    read = read_frame if all(raw) else read_ldr_frame
+    frames = [read(Path(p), None, times[k] if times else None, margin=options.margin,
+                   color=options.color) for k, p in enumerate(paths)]
+    dark_frame = read(Path(dark), None, max(times) if times else None, margin=options.margin,
+                      color=options.color) if dark else None
+    if not all(raw):
+        bits = {fr.info.white_level for fr in frames}
+        if options.response is None and 255 in bits:
+            raise MergeError(f"{paths[0]}: 8-bit codes are not linear; give --response from "
+                             "'ilt calibrate' of this camera")
     radiance, count, saturated, _, attributes = merge_frames(frames, dark_frame, options)
+    output.parent.mkdir(parents=True, exist_ok=True)
     image = radiance if options.color else radiance[..., None]
     write_exr(output, image, ["R", "G", "B"] if options.color else ["Y"], attributes, options.compression)
     write_png(siblings[1], count)
@@ -373,8 +461,10 @@ def collect_calibration_input(inputs: list[str | os.PathLike], times: list[Fract
         facts_ref = facts
         images = [loaded[k][0] for k in order]
         clip = [loaded[k][3] for k in order]
-        low = 0.003 if raw_kind else 3 / 255
-        masks = usable_samples(images, low, 1.0, 1.0)
+        # 8/16-bit: three codes above black, and the neighbours a code below the top (a
+        # sample a code from clipping is there because its noise was negative)
+        low, high = (0.003, 1.0) if raw_kind else (3 / 255, 254 / 255)
+        masks = usable_samples(images, low, high, 1.0)
         valid.append([m & ~c for m, c in zip(masks, clip)])
         scenes.append(images)
         files += [p for p, _ in bracket]
@@ -390,32 +480,27 @@ def _load_normalised(path: Path, record: FrameRecord | None, hand_time):
         i = frame.info
         full = i.white_level - float(np.mean(i.black_levels))
         return frame.image / full, i.exposure, True, i.saturated
-    import cv2
-
-    if not path.is_file():
-        raise CalibrationError(f"{path}: no such file")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
-    if image is None:
-        raise CalibrationError(f"{path}: not an image OpenCV can read (nor a RAW file by its suffix)")
-    if image.dtype not in (np.uint8, np.uint16):
-        raise CalibrationError(f"{path}: {image.dtype} pixels; calibration needs 8- or 16-bit images")
+    image, top = _read_codes(path, CalibrationError)
     if image.ndim == 3:
-        image = image[:, :, 1]  # green of BGR(A)
-    top = float(np.iinfo(image.dtype).max)
+        image = image[:, :, 1]  # green of BGR
     facts = resolve_facts(path, record.exposure_time if record else None,
                           record.f_number if record else None, hand_time=hand_time)
     return image / top, facts, False, image >= top - 0.5
 
 
 def calibrate(inputs, output: str | os.PathLike, *, times=None, order=None, max_order=None,
-              pin_span=None, tolerance=1e-6, plot=True, force=False) -> tuple[Path, dict]:
+              pin_span=None, estimate_ratios=None, tolerance=1e-6, plot=True,
+              force=False) -> tuple[Path, dict]:
     """Mitsunaga-Nayar calibration of a bracket; writes ``output`` (JSON) and a PNG plot
-    beside it (same stem). RAW input: intercept fixed at 0, order <= 3."""
+    beside it (same stem), creating ``output``'s directory if needed. RAW input: order
+    <= 3 and the exposure ratios estimated; other images: order <= 12, the nominal
+    ratios trusted unless ``estimate_ratios`` (see ilt.hdr.mitsunaga_nayar)."""
     output = Path(output)
     plot_path = output.with_suffix(".png")
     for p in (output, plot_path) if plot else (output,):
         if p.exists() and not force:
             raise CalibrationError(f"{p} exists; use --force to replace it")
+    _check_writable_parent(output)
     data = collect_calibration_input(inputs, times)
     e = np.array([f.relative_exposure() for f in data.facts])
     if np.any(np.diff(e) <= 0):
@@ -423,20 +508,39 @@ def calibrate(inputs, output: str | os.PathLike, *, times=None, order=None, max_
                                "calibration needs distinct exposures")
     images = [np.concatenate([s[q].ravel() for s in data.images]) for q in range(len(e))]
     valid = [np.concatenate([v[q].ravel() for v in data.valid]) for q in range(len(e))]
+    estimate = data.raw if estimate_ratios is None else estimate_ratios
     fit = fit_response(images, e, valid, order=order,
-                       max_order=max_order or (3 if data.raw else 8),
-                       zero_intercept=data.raw, pin_span=(not data.raw) if pin_span is None else pin_span,
-                       tolerance=tolerance)
+                       max_order=max_order or (3 if data.raw else 12),
+                       zero_intercept=data.raw, estimate_ratios=estimate,
+                       pin_span=(not data.raw) if pin_span is None else pin_span,
+                       noise=1e-3 if data.raw else 1 / 255, tolerance=tolerance)
+    warnings = []
     if not fit.converged:
-        log.warning("the response did not converge to the tolerance; the result may drift")
+        warnings.append(f"the fit did not converge to tolerance {tolerance:g} in {fit.iterations} steps; "
+                        "the response may be off (try --order or a longer bracket)")
+    names = [f"{f.time_text} s at f/{f.f_number_text}" for f in data.facts]
+    for q, stops in enumerate(fit.ratio_stops()):
+        if abs(stops) > RATIO_WARN_STOPS:
+            warnings.append(f"the measured ratio of {names[q + 1]} to {names[q]} is {fit.ratios[q]:.3g}, "
+                            f"{stops:+.2f} stops from the nominal {fit.nominal_ratios[q]:.3g}: check the "
+                            "exposure facts (EXIF, --times) or whether the scene moved")
+    for w in warnings:
+        log.warning("%s: %s", data.files[0].parent if len(data.files) else output, w)
     measured = fit.relative_exposures()
     # measured exposures keep the nominal scale: their geometric mean equals the nominal one
     measured = measured * np.exp(np.mean(np.log(e)) - np.mean(np.log(measured)))
+    table_m, table_f = fit.table(256)
     result = {
-        "method": "Mitsunaga & Nayar 1999",
+        "method": "Mitsunaga & Nayar 1999, monotone (Bernstein form), robust log-residual fit",
         "kind": "raw" if data.raw else "ldr",
         "coefficients": fit.coefficients.tolist(),
+        "exponent": fit.exponent,
+        "bernstein": fit.bernstein.tolist(),
+        "table": {"note": "f sampled at 256 evenly spaced M in [0, 1]; interpolate linearly",
+                  "m": table_m.tolist(), "f": table_f.tolist()},
         "order": fit.order,
+        "ratios_estimated": bool(estimate),
+        "warnings": warnings,
         "ratios": fit.ratios.tolist(),
         "nominal_ratios": fit.nominal_ratios.tolist(),
         "exposures": [{"exposure_time": f.time_text, "f_number": f.f_number_text,
@@ -450,10 +554,22 @@ def calibrate(inputs, output: str | os.PathLike, *, times=None, order=None, max_
         "pairs": fit.pairs,
         "inputs": [str(p) for p in data.files],
     }
+    output.parent.mkdir(parents=True, exist_ok=True)
     write_json(output, result)
     if plot:
         _plot_response(fit, plot_path)
     return output, result
+
+
+def _check_writable_parent(path: Path, error=CalibrationError) -> None:
+    """Refuse, before any work, an output whose directory cannot be made or written."""
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise error(f"{path}: {parent} is a file, so the directory cannot be made")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise error(f"{path}: {parent} is not writable")
 
 
 def _plot_response(fit: ResponseFit, path: Path) -> None:

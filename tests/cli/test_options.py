@@ -13,6 +13,7 @@ COMMANDS = {
                   "--max-cell-radius", "--fine-degree", "--no-fine", "-j/--workers", "--scheduler", "-w/--workspace",
                   "--force", "--json"],
     "calibrate": ["INPUTS", "-o/--output", "--times", "--order", "--max-order", "--pin-span/--free-span",
+                  "--trust-ratios/--estimate-ratios",
                   "--tolerance", "--no-plot", "--force", "--json"],
     "capture": ["CONFIG", "-o/--output", "--resume", "-w/--workspace", "--json"],
     "centroids": ["HDR_DIR", "-o/--output", "--dark", "--threshold", "--min-snr", "--max-second", "--max-elongation",

@@ -304,3 +304,34 @@ def test_pixels_clipped_in_every_exposure_are_reported(tmp_path, caplog):
     assert summary["saturated_pixels"] == clipped["beam-00001"]
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert any(f"beam-00001: {clipped['beam-00001']} pixels saturated in every exposure" in w for w in warnings)
+
+
+def test_an_8bit_bracket_calibrated_then_merged_through_the_cli(tmp_path):
+    """An 8-bit TIFF bracket (EXIF times) of a known radiance ramp: `ilt calibrate` then
+    `ilt merge --bracket --response` gives radiance within 3 % (median, after one global
+    scale) over the two decades every exposure sees well (measured 1.5 % and 0.8 %); the
+    darkest decade, a few codes even at the longest exposure, is left out. Without
+    --response an 8-bit bracket is refused and nothing is written."""
+    from ilt.sim.sensor import write_ldr
+
+    sensor = SensorModel(width=200, height=120, black_level=0, white_level=255, bits=8, gain=60.0,
+                         read_noise=30.0, response=lambda x: x ** (1 / 2.2) * (1.1 - 0.1 * x),
+                         colour_scale=(1, 1, 1))
+    X = np.logspace(2, 6, 200)[None, :].repeat(120, 0)
+    times = [1 / 1000, 1 / 500, 1 / 250, 1 / 125, 1 / 60, 1 / 30, 1 / 15]
+    rng = np.random.default_rng(5)
+    files = [str(write_ldr(tmp_path / f"f{k}.tif", X, t, 1.0, sensor, rng)) for k, t in enumerate(times)]
+    runner = CliRunner()
+    result = runner.invoke(cli, ["calibrate", *files, "-o", str(tmp_path / "r.json"), "--no-plot"])
+    assert result.exit_code == 0, result.output
+    refused = runner.invoke(cli, ["merge", "--bracket", *files, "-o", str(tmp_path / "x.exr")])
+    assert refused.exit_code != 0 and "--response" in refused.output and not (tmp_path / "x.exr").exists()
+    out = tmp_path / "new" / "m.exr"
+    result = runner.invoke(cli, ["merge", "--bracket", *files, "--response", str(tmp_path / "r.json"), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    image, _ = read_exr(out)
+    estimate = image[..., 0].astype(np.float64)
+    lit = X >= 1e4
+    scale = np.exp(np.median(np.log(X[lit]) - np.log(estimate[lit])))
+    assert np.median(np.abs(scale * estimate[lit] / X[lit] - 1)) < 0.03
+    assert out.with_suffix(".valid.png").exists()

@@ -98,7 +98,8 @@ class ResponseFit:
     ratios: (Q-1,) float64 measured e_{q+1} / e_q, exposures sorted shortest first.
     nominal_ratios: (Q-1,) the ratios the exposure facts claimed.
     residual: robust RMS of the log residual log f(M_hi) - log f(M_lo) - log R over the
-        pairs used (1.4826 x median |.|).
+        pairs used that are mid-range (0.1 < M < 0.9) in both (1.4826 x median |.|): how
+        far two exposures of a pixel disagree after linearisation, in log units.
     held_out: {order: held-out median |log residual|} for every order tried.
     iterations: reweighting steps of the last fit; pairs: pixel pairs used;
     converged: f and the ratios changed by less than the tolerance in the last step.
@@ -245,7 +246,9 @@ def fit_response(
     d, ratios, iterations, converged = _fit(pairs, nominal, orders[0], gamma, *settings)
     b = np.concatenate([[0.0], np.cumsum(d)])
     b[-1] = 1.0
-    residual = 1.4826 * float(np.median(np.abs(pairs.log_residual(d, ratios, orders[0], gamma))))
+    r = np.abs(pairs.log_residual(d, ratios, orders[0], gamma))
+    middle = (pairs.lo > 0.1) & (pairs.lo < 0.9) & (pairs.hi > 0.1) & (pairs.hi < 0.9)
+    residual = 1.4826 * float(np.median(r[middle] if middle.sum() >= 20 else r))
     return ResponseFit(_bernstein_to_power(b), ratios, nominal, residual, held_out, iterations,
                        pairs.count, converged, b, float(gamma))
 

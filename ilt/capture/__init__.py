@@ -4,8 +4,8 @@
 ``ptu`` speaks the FLIR/Directed Perception ASCII protocol over pyserial,
 ``emulator`` is a pan-tilt unit on a pseudo-terminal or a loopback socket,
 ``laser`` switches the beam, ``camera`` shoots brackets (simulated or gphoto2),
-``adaptive`` decides which exposures a beam needs, and ``loop`` runs the scan:
-append-only log, atomic frames, resume.
+``adaptive`` decides which exposures a beam needs, ``loop`` runs the scan:
+append-only log, atomic frames, resume, and ``estimate`` says how long it will take.
 """
 
 import lazy_loader
@@ -20,5 +20,6 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
         "plan": ["make_plan"],
         "ptu": ["PanTilt"],
         "emulator": ["LaserEmulator", "PTUEmulator"],
+        "estimate": ["Estimate", "estimate", "measure_logs"],
     },
 )

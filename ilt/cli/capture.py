@@ -20,15 +20,21 @@ log = logging.getLogger(__name__)
               help="Capture directory (default: the config's [output] directory in the workspace).")
 @click.option("--resume", is_flag=True,
               help="Continue an interrupted capture: complete beams are skipped, the interrupted one is shot again.")
+@click.option("--estimate", is_flag=True,
+              help="Print the scan's expected time (moves, settles, exposures, downloads, dark frames) and "
+                   "exit; nothing is opened or moved. Timings measured in earlier capture logs are used "
+                   "(the output directory's capture.jsonl, and any --log).")
+@click.option("--log", "logs", multiple=True, type=click.Path(dir_okay=False, exists=True),
+              help="With --estimate: an earlier scan's capture.jsonl to measure timings from (repeatable).")
 @workspace_option
 @json_option
-def command(config, output, resume, workspace, as_json):
+def command(config, output, resume, estimate, logs, workspace, as_json):
     """Scan the beams of CONFIG (a rig TOML file, default WORKSPACE/rig.toml; docs/capture.md).
 
     Per beam: move the pan-tilt unit, settle, laser on, bracket of RAW exposures,
     laser off, dark frame. Every frame is logged in capture.jsonl; Ctrl-C stops with
     the laser off, and --resume goes on where the scan stopped. `configs/sim.toml`
-    runs on the emulated rig.
+    runs on the emulated rig. --estimate prints the expected hours first.
     """
     from ilt.capture.camera import check_sim_camera
     from ilt.capture.config import load_config
@@ -39,6 +45,18 @@ def command(config, output, resume, workspace, as_json):
         raise MissingInput(f"{path}: no such rig config; give a rig TOML (the simulated rig's is "
                            "configs/sim.toml, docs/capture.md)")
     cfg = load_config(path)
+    if estimate:
+        from ilt.capture.estimate import default_logs
+        from ilt.capture.estimate import estimate as estimate_scan
+
+        result = estimate_scan(cfg, [*logs, *default_logs(cfg, workspace.root, output)])
+        if as_json:
+            emit(True, result.as_dict(), [])
+        else:
+            click.echo(result.table())
+        return
+    if logs:
+        raise click.UsageError("--log is for --estimate")
     check_sim_camera(cfg)
     output = output or str(workspace.root / cfg.output)
     start = time.monotonic()

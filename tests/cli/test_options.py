@@ -15,7 +15,7 @@ COMMANDS = {
     "calibrate": ["INPUTS", "-o/--output", "--times", "--order", "--max-order", "--pin-span/--free-span",
                   "--trust-ratios/--estimate-ratios",
                   "--tolerance", "--no-plot", "--force", "--json"],
-    "capture": ["CONFIG", "-o/--output", "--resume", "-w/--workspace", "--json"],
+    "capture": ["CONFIG", "-o/--output", "--resume", "--estimate", "--log", "-w/--workspace", "--json"],
     "centroids": ["HDR_DIR", "-o/--output", "--dark", "--threshold", "--min-snr", "--max-second", "--max-elongation",
                   "--large-factor", "--max-area", "--saturation", "--roi", "--refine", "-j/--workers", "--scheduler",
                   "-w/--workspace", "--force", "--json"],

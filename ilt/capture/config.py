@@ -98,9 +98,12 @@ class BracketConfig:
 @dataclass(frozen=True)
 class DarkConfig:
     """``frames``: ``longest`` (one laser-off frame at the longest exposure taken, as
-    ``dark.dng`` of the beam; ``ilt merge`` subtracts it) or ``none``."""
+    ``dark.dng`` of the beam; ``ilt merge`` subtracts it) or ``none``. ``every``: one
+    dark frame shot every N beams, the beams between holding a hard link to it (a
+    sensor's dark level drifts over minutes, not beams; docs/capture.md measures it)."""
 
     frames: str = "longest"
+    every: int = 1
 
 
 @dataclass(frozen=True)
@@ -130,6 +133,8 @@ class RigConfig:
         d = asdict(self)
         d.pop("path")
         d["bracket"]["exposures"] = [e.as_dict() for e in self.bracket.exposures]
+        if d["dark"]["every"] == 1:  # as before [dark] every existed: a capture's fingerprint stays
+            del d["dark"]["every"]
         return d
 
 
@@ -181,6 +186,8 @@ def parse_config(raw: dict, where: str = "<config>") -> RigConfig:
            f"{where}: [laser] control = 'serial' needs a port")
     _check(camera.backend in ("sim", "gphoto2"), f"{where}: [camera] backend {camera.backend!r} unknown (sim, gphoto2)")
     _check(dark.frames in ("longest", "none"), f"{where}: [dark] frames {dark.frames!r} unknown (longest, none)")
+    _check(isinstance(dark.every, int) and not isinstance(dark.every, bool) and dark.every >= 1,
+           f"{where}: [dark] every {dark.every!r} must be a whole number of beams >= 1")
     _check(plan.kind in ("line", "grid", "list"), f"{where}: [plan] kind {plan.kind!r} unknown (line, grid, list)")
     _check(plan.units in ("degrees", "steps"), f"{where}: [plan] units {plan.units!r} unknown (degrees, steps)")
     if not isinstance(out, dict):

@@ -19,6 +19,7 @@ estimate counts the full bracket, an upper bound, and says so.
 
 from __future__ import annotations
 
+import math
 import os
 import statistics
 from dataclasses import dataclass, field
@@ -121,7 +122,7 @@ def measure_logs(paths: list[str | os.PathLike], speed: float = PTU_SPEED, real_
                 previous_end = when
             elif r.get("event") in ("start", "resume", "set_aside"):
                 previous_end = None
-            elif r.get("event") == "frame":
+            elif r.get("event") == "frame" and "shared_from" not in r:  # a linked dark took no time
                 shutter = float((r.get("requested") or {}).get("exposure_time") or 0.0) if real_exposures else 0.0
                 if beam in last:
                     frame_over.append((when - last[beam][0]).total_seconds() - shutter)
@@ -174,7 +175,7 @@ def estimate(cfg: RigConfig, logs: list[str | os.PathLike] = ()) -> Estimate:
         "laser": 2 * LASER_SWITCH * m if cfg.laser.control != "none" else 0.0,
         "exposures": shutter * m,
         "downloads": per_frame * len(exposures) * m,
-        "dark": (dark_shutter + per_frame) * m,
+        "dark": (dark_shutter + per_frame) * math.ceil(m / cfg.dark.every) if dark else 0.0,
     }
     sources = {
         "moves": f"travel at {speed:g} positions/s ({speed_source}) + {MOVE_OVERHEAD:g} s of commands a move",
@@ -183,7 +184,8 @@ def estimate(cfg: RigConfig, logs: list[str | os.PathLike] = ()) -> Estimate:
         "exposures": (f"the bracket's {len(exposures)} exposures, {shutter:.4g} s a beam" if real else
                       "the simulated camera does not wait for its exposures"),
         "downloads": f"{per_frame:.3g} s a frame: {frame_source}",
-        "dark": "one frame at the longest exposure a beam" if dark else "[dark] frames = none",
+        "dark": ("[dark] frames = none" if not dark else "one frame at the longest exposure a beam"
+                 if cfg.dark.every == 1 else f"one frame at the longest exposure every {cfg.dark.every} beams"),
     }
     notes = []
     if measured.settle is not None:

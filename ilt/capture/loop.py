@@ -26,6 +26,7 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -97,6 +98,8 @@ class Rig:
     plan: Plan
     steps: np.ndarray
     emulators: list = field(default_factory=list)
+    #: the dark frame shot last in this run: (path, beams that used it, its exposure)
+    last_dark: tuple | None = None
 
 
 @contextlib.contextmanager
@@ -304,7 +307,13 @@ def _beam(cfg: RigConfig, rig: Rig, directory: Path, journal: CaptureLog, j: int
     dark = None
     if cfg.dark.frames == "longest":
         longest = max(exposures, key=lambda e: e.relative)
-        dark = _frame(rig, beam_dir, journal, j, "dark", longest, position)
+        shared = rig.last_dark
+        if shared is not None and shared[1] < cfg.dark.every and shared[2] == longest and shared[0].exists():
+            dark = _link_dark(beam_dir, journal, j, shared[0], longest, position, rig.camera.suffix)
+            rig.last_dark = (shared[0], shared[1] + 1, longest)
+        else:
+            dark = _frame(rig, beam_dir, journal, j, "dark", longest, position)
+            rig.last_dark = (beam_dir / dark.file, 1, longest)
     full = cfg.bracket.exposures
     write_beam_manifest(beam_dir, frames, dark, extra={
         **position, "skipped": [e.as_dict() for e in full if e not in exposures]})
@@ -363,6 +372,23 @@ def _frame(rig: Rig, beam_dir: Path, journal: CaptureLog, j: int, stem: str, exp
         readback={"pan": position["readback_pan"], "tilt": position["readback_tilt"], **readback},
         exif={"exposure_time": None if t is None else str(t), "f_number": None if n is None else str(n)},
         sha256=fingerprint_file(final), laser=rig.laser.state)
+    return FrameRecord(final.name, str(exposure.shutter), f"{exposure.aperture:g}")
+
+
+def _link_dark(beam_dir: Path, journal: CaptureLog, j: int, source: Path, exposure: Exposure, position: dict,
+               suffix: str) -> FrameRecord:
+    """The beam's dark frame as a hard link to the one shot ``[dark] every`` beams ago (a
+    copy where the file system has no links), logged as a frame with ``shared_from``."""
+    final = beam_dir / f"dark{suffix}"
+    try:
+        os.link(source, final)
+    except OSError:
+        shutil.copy2(source, final)
+    _fsync_dir(beam_dir)
+    journal.append(
+        "frame", beam=j, file=f"{beam_dir.name}/{final.name}", kind="dark",
+        requested={"pan": position["pan"], "tilt": position["tilt"], **exposure.as_dict()},
+        shared_from=f"{source.parent.name}/{source.name}", sha256=fingerprint_file(final), laser=False)
     return FrameRecord(final.name, str(exposure.shutter), f"{exposure.aperture:g}")
 
 

@@ -193,3 +193,28 @@ def test_cli_refuses_to_overwrite_and_resume_of_complete_capture_shoots_nothing(
     result = _cli(["capture", str(cfg), "-o", str(out), "--resume", "--json"])
     assert result.exit_code == 0, result.output
     assert '"shot": 0' in result.output and frame_hashes(out) == before
+
+
+def test_a_dark_frame_every_four_beams_is_linked_into_the_beams_between(reference, tmp_path):
+    """[dark] every = 4 on 8 beams: beams 0 and 4 shoot a dark frame, the others hold a
+    hard link to it, logged as frames with shared_from; the bracket frames are the
+    reference's byte for byte, verify_log finds nothing wrong, and merge takes it."""
+    from ilt.capture.log import read_log
+    from ilt.hdr.stages import merge_capture
+
+    ref, _ = reference
+    out = tmp_path / "capture"
+    with PTUEmulator("pty", speed=20000) as emu:
+        summary = run_on(emu, small_config(dark={"every": 4}), out)
+    assert summary["beams"] == 8
+    darks = [out / f"beam-{j:05d}" / "dark.dng" for j in range(8)]
+    inodes = [os.stat(d).st_ino for d in darks]
+    assert inodes[0] == inodes[1] == inodes[2] == inodes[3] != inodes[4] == inodes[7]
+    shared = [r for r in read_log(out / "capture.jsonl") if r["event"] == "frame" and "shared_from" in r]
+    assert [r["beam"] for r in shared] == [1, 2, 3, 5, 6, 7]
+    assert shared[0]["shared_from"] == "beam-00000/dark.dng"
+    mine, theirs = frame_hashes(out), frame_hashes(ref)
+    assert {k: v for k, v in mine.items() if "dark" not in k} == {k: v for k, v in theirs.items() if "dark" not in k}
+    assert verify_log(out) == []
+    merge_capture(out, tmp_path / "hdr")
+    assert len(list((tmp_path / "hdr").glob("beam-*.exr"))) == 8

@@ -95,12 +95,41 @@ def select_beams(beams: list[int], spots, min_separation: float) -> tuple[list[i
     return kept, sorted(drops, key=lambda d: d["beam"])
 
 
-def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float) -> np.ndarray:
-    """(H, W) bool pixels the scan lights: the sum of all beam frames above ``fraction`` x its
-    median at the spot pixels."""
+#: a pixel is lit when the 3 x 3 mean of the sum of the beam frames is this many times
+#: that mean's noise above zero
+LIT_SIGMAS = 5.0
+
+
+def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
+             sigmas: float = LIT_SIGMAS) -> tuple[np.ndarray, dict]:
+    """(H, W) bool pixels the scan lights, and how the threshold was set.
+
+    A pixel is lit where the sum of all beam frames is above ``fraction`` x its median
+    at the spot pixels and the sum's 3 x 3 mean there is above ``sigmas`` x that mean's
+    noise, measured from its negative values: black-subtracted frames read below zero
+    only by noise, the sum of m frames carries the noise of m, and the negative half of
+    zero-mean noise gives its sigma as sqrt(mean(x^2 | x < 0)). Noise-free frames (no
+    negatives): the fraction alone, as before. Without the noise test, background pixels
+    that only noise lit joined the cells and added their noise to T: on the noisy box
+    (benchmarks/bench_coverage.py, 2e4 e- at the brightest spot pixel) the cells covered
+    more than on noise-free frames, and bounces 1 and 2 got worse from m = 108 to 189;
+    with it they fall with m and halve (bounce 2 at m = 189: 0.179 -> 0.092).
+    """
+    from scipy.ndimage import uniform_filter
+
+    frame_sum = np.asarray(frame_sum, dtype=np.float64)
     rows = np.clip(np.floor(centroids[:, 1] + 0.5).astype(int), 0, frame_sum.shape[0] - 1)
     cols = np.clip(np.floor(centroids[:, 0] + 0.5).astype(int), 0, frame_sum.shape[1] - 1)
-    return frame_sum > fraction * np.median(frame_sum[rows, cols])
+    relative = fraction * float(np.median(frame_sum[rows, cols]))
+    lit = frame_sum > relative
+    noise = 0.0
+    if np.count_nonzero(frame_sum < 0) >= 16:
+        smooth = uniform_filter(frame_sum, size=3, mode="nearest")
+        negative = smooth[smooth < 0]
+        if negative.size >= 16:
+            noise = float(np.sqrt(np.mean(negative**2)))
+            lit &= smooth > sigmas * noise
+    return lit, {"relative_threshold": relative, "noise_sigma": noise, "noise_threshold": sigmas * noise}
 
 
 def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):
@@ -200,7 +229,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     labels = None
     if sampling == "cell":
         frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
-        lit = None if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction)
+        lit, lit_info = (None, None) if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction)
         if max_cell_radius is None:
             nn = cKDTree(on_grid).query(on_grid, k=2)[0][:, 1]
             max_cell_radius = 2.0 * float(np.median(nn))
@@ -274,11 +303,13 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                                      frames_inputs(hdr.path, out), share))
         fields = {"sampling": sampling, "beams": plan, "drops": drops,
                   "pixel_mapping": hdr.mapping.as_dict()}
+        if labels is not None:
+            fields["coverage"] = {"fraction": float(np.mean(labels >= 0)), "lit": lit_info}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
         save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")
         parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
-                      "max_cell_radius": max_cell_radius, "fine_degree": fine_degree}
+                      "max_cell_radius": max_cell_radius, "fine_degree": fine_degree, "lit_sigmas": LIT_SIGMAS}
         inputs = {str(spots_dir / SPOTS_FILE): ""}
         if (spots_dir / MANIFEST).exists():   # the spots' manifest by its hash: what `ilt status` knows a stage by
             spots_manifest = read_manifest(spots_dir)

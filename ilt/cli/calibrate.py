@@ -11,7 +11,9 @@ from ilt.cli.options import emit, force_option, json_option, note
 @click.argument("inputs", nargs=-1, required=True, metavar="IMAGES_OR_DIR...", type=click.Path())
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="response.json to write (a .png plot is written beside it).")
-@click.option("--times", default=None, help="Exposure times when neither manifest nor EXIF has them, e.g. 1/15,1/30.")
+@click.option("--times", default=None,
+              help="Exposure times of the files, e.g. 1/15,1/30, in their order; they override EXIF (with a "
+                   "warning where EXIF differs by more than 1/6 stop); a capture manifest's times come first.")
 @click.option("--order", type=click.IntRange(1, 10), default=None,
               help="Polynomial order (default: chosen on held-out pixels).")
 @click.option("--max-order", type=click.IntRange(1, 10), default=None,

@@ -266,8 +266,6 @@ def _held_out_error(check, d, ratios, n, gamma, mid, noise, how) -> float:
     r = check.log_residual(d, ratios, n, gamma)
     if how == "median":
         return float(np.median(np.abs(r[mid])))
-    if how == "median_all":
-        return float(np.median(np.abs(r)))
     lo, hi, dlo, dhi = check.basis(n, gamma)
     f_lo, f_hi = np.maximum(lo @ d, 1e-300), np.maximum(hi @ d, 1e-300)
     var = noise**2 * (((dhi @ d) / f_hi) ** 2 + ((dlo @ d) / f_lo) ** 2) + MODEL_FLOOR**2
@@ -279,7 +277,7 @@ class _Pairs:
 
     def __init__(self, lo, hi, q, groups):
         self.lo, self.hi, self.q, self.groups = lo, hi, q, groups
-        self._basis: dict[int, tuple] = {}
+        self._basis: dict[tuple[int, float], tuple] = {}
 
     @property
     def count(self) -> int:
@@ -303,9 +301,6 @@ class _Pairs:
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.log(f_hi) - np.log(f_lo) - np.log(ratios[self.q])
         return np.where(np.isfinite(r), r, 10.0)  # f = 0 at a used pixel: as bad as can be
-
-    def group_sum(self, values) -> np.ndarray:
-        return np.bincount(self.q, weights=values, minlength=self.groups)
 
 
 def _phi(m, n: int, gamma: float = 1.0) -> tuple[np.ndarray, np.ndarray]:

@@ -73,6 +73,8 @@ ORDER_SLACK = 0.02
 GAMMAS = (0.6, 0.8, 1.0, 1.3, 1.6, 2.0, 2.4, 2.8)
 #: the degree at which the warps are compared
 GAMMA_PROBE_ORDER = 8
+#: training pairs of each fit that chooses the warp and the order (the final fit takes all)
+SELECTION_PAIRS = 30_000
 #: an estimated ratio this many stops from its nominal one is reported
 RATIO_WARN_STOPS = 1.0
 #: the prior on each exposure ratio: log2(R / nominal) ~ N(0, this^2). Shutters and
@@ -219,6 +221,8 @@ def fit_response(
         test = rng.random(m.shape[1]) < held_out_fraction
         tested = test[p_idx]
         train, check = pairs.subset(~tested), pairs.subset(tested)
+        if train.count > SELECTION_PAIRS:  # the choice needs fewer pairs than the final fit
+            train = train.subset(np.sort(rng.choice(train.count, SELECTION_PAIRS, replace=False)))
         # judged where a merge uses the pixels: mid-range in both exposures
         mid = (check.lo > 0.1) & (check.lo < 0.9) & (check.hi > 0.1) & (check.hi < 0.9)
         if mid.sum() < 20:
@@ -284,6 +288,7 @@ class _Pairs:
         return int(self.lo.size)
 
     def subset(self, mask) -> _Pairs:
+        """The pairs at ``mask`` (bool, or indices)."""
         return _Pairs(self.lo[mask], self.hi[mask], self.q[mask], self.groups)
 
     def basis(self, n: int, gamma: float = 1.0):

@@ -224,6 +224,13 @@ class BeamPool(cf.ProcessPoolExecutor):
         """After the pool broke: each future a worker was running when it died, with how
         it ended ("was killed by SIGKILL", "exited with status 1"); the workers the pool
         stopped because another died (SIGTERM) are not counted."""
+        # the executor's thread reads the dead workers' exit codes as it tears the pool
+        # down; a fork server child's code is read once from its sentinel, and two
+        # threads reading it at once leave one of them with 255 ("exited with status
+        # 255" for a worker that exited with 3, seen once under load): let it finish
+        manager = getattr(self, "_executor_manager_thread", None)
+        if manager is not None and manager is not threading.current_thread():
+            manager.join(timeout=10)
         out = []
         for pid, process in list(self._workers.items()):
             code = process.exitcode

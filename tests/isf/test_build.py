@@ -99,6 +99,30 @@ def test_cells_partition_the_lit_pixels():
     np.testing.assert_allclose(painted[lit], 1.0, rtol=1e-6)
 
 
+def test_the_lit_test_leaves_out_what_only_noise_lights():
+    """A frame sum of 64 noisy frames: a lit square of 100 units a pixel over a background of
+    zero-mean noise (sigma 1 a frame, 8 for the sum). The 1e-3 fraction alone keeps half
+    the background (its positive noise); the noise test keeps the square and none of the
+    background past the mean's reach, and measures the 3 x 3 mean's noise (8 / 3). Noise-free, the same sum
+    gives the fraction's mask."""
+    from ilt.isf.build import lit_mask
+
+    rng = np.random.default_rng(0)
+    truth = np.zeros((80, 80))
+    truth[20:60, 20:60] = 100.0
+    noisy = truth + rng.normal(0, 8.0, truth.shape)
+    spots = np.array([[30.0, 30.0], [50.0, 50.0]])
+    lit, info = lit_mask(noisy, spots, 1e-3)
+    background = truth == 0
+    far = np.ones_like(background)
+    far[19:61, 19:61] = False  # the 3 x 3 mean reaches one pixel past the square's edge
+    assert (noisy[background] > 1e-3 * 100).mean() > 0.4
+    assert lit[22:58, 22:58].all() and not lit[far].any()
+    assert info["noise_sigma"] == pytest.approx(8.0 / 3.0, rel=0.1)
+    clean, info = lit_mask(truth, spots, 1e-3)
+    assert np.array_equal(clean, truth > 0.1) and info["noise_sigma"] == 0.0
+
+
 def test_executor_is_pluggable_and_gives_the_same_T(runs, tmp_path):
     root, sim = runs[16]
     with ThreadPoolExecutor(2) as ex:

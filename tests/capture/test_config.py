@@ -35,6 +35,7 @@ def test_example_rig_config_parses():
     ({"plan": {"kind": "spiral"}}, "kind 'spiral'"),
     ({"plan": {"count": "many"}}, "count = 'many'"),
     ({"lens": {}}, "unknown section [lens]"),
+    ({"dark": {"every": 0}}, "[dark] every 0 must be a whole number of beams >= 1"),
 ])
 def test_bad_config_names_the_key(raw, words):
     with pytest.raises(ConfigError, match=None) as info:

@@ -8,11 +8,11 @@
 append-only log, atomic frames, resume, and ``estimate`` says how long it will take.
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "config": ["ConfigError", "Exposure", "RigConfig", "load_config", "parse_config"],
         "errors": ["CameraError", "DeviceError", "Disconnected", "LaserError", "LimitHit", "PTUError", "RigError", "RigTimeout"],
         "log": ["CaptureLog", "CaptureLogError", "read_log"],

@@ -5,11 +5,11 @@ as one batch, outputs written whole), ``fullres`` (bounce images at every pixel 
 the sample-level recursion and the fine operator).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "fullres": ["full_resolution"],
         "stage": ["InputError", "decompose", "default_cache_dir", "load_operator", "read_photo"],
     },

@@ -5,11 +5,11 @@
 ``end_to_end`` (the emulated rig's output against the renderer's truth).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "bench": ["run_bench"],
         "end_to_end": ["compare", "ideal_workspace"],
         "errors": ["bounce_isf_errors", "noise_amplification", "relative_errors"],

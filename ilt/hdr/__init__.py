@@ -7,11 +7,11 @@ calibrate`` and ``ilt merge`` on files). RAW decoding and EXIF exposure facts ar
 :mod:`ilt.io.raw` and :mod:`ilt.io.exposure`: capture reads them too.
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "bracket": ["list_beams", "read_beam"],
         "merge": ["MergeError", "NoiseModel", "cramer_rao_bound", "merge_bracket"],
         "mitsunaga_nayar": ["CalibrationError", "ResponseFit", "fit_response"],

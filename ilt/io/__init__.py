@@ -9,11 +9,11 @@ and content fingerprints), ``atomic`` (temporary-then-rename writes), ``staged``
 (run records: is a stage up to date), ``workspace_dirs`` (a workspace's directories).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "atomic": ["atomic_path", "remove_stale_temporaries"],
         "beams": ["BEAM_GLOB", "FrameRecord", "beam_name", "write_beam_manifest"],
         "exposure": [

@@ -6,11 +6,11 @@ samples as an image), ``build`` (``ilt build-isf``: T's columns from the frames,
 pass), ``fine`` (the fine operator for full-resolution bounces, fitted in that pass).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "build": ["build_isf", "centroids_and_isf"],
         "cells": ["integrate", "mosaic", "voronoi_cells"],
         "directory": ["ISF", "ISFError", "load_isf", "write_isf"],

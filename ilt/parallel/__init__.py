@@ -6,11 +6,11 @@ is given), ``chunks`` (beams in chunks over either, with one-line errors naming 
 beams a lost worker held), ``memory`` (the memory this machine has free).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "chunks": ["WorkerError", "beam_executor", "chunks", "run_chunks"],
         "cluster": ["ClusterExecutor", "WorkerOSError", "executor_for"],
         "memory": ["available_memory"],

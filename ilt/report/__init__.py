@@ -4,11 +4,11 @@ images (Fig. 6), diagnostics and capture statistics.
 ``page`` (the page and its figures).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "page": ["fig5_matrices", "write_report"],
     },
 )

@@ -5,11 +5,11 @@ under an occluder, or three inside faces of a box (Fig. 7), with the true ``A``,
 ``T1``, ``T``, n-bounce ISFs and photos under flashlight, room and projector light.
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "lighting": ["ILLUMINATIONS"],
         "scene": ["SCENES", "Scene", "make_scene"],
         "render": ["render_scene"],

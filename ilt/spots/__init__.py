@@ -5,11 +5,11 @@ shape flags), ``table`` (the spot record and ``spots.csv``), ``stage`` (``ilt
 centroids``: every beam of a merged or raw capture, the sum image and the overlay).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "find": ["SpotParameters", "find_spot"],
         "stage": ["read_shortest_exposure", "run_centroids"],
         "table": ["SPOTS_FILE", "Spot", "SpotsError", "read_spots", "write_spots"],

@@ -8,11 +8,11 @@ auto choice), ``series`` (sparse Neumann series), ``compressed`` (hierarchical
 low-rank, HODLR), ``regularise`` (denoising T before inversion).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "compressed": ["compressed_operator", "grid_points"],
         "diagnostics": ["decomposition_diagnostics", "operator_diagnostics", "spectral_radius"],
         "operators": ["CancellationOperator", "Decomposition", "bounce_images", "cancellation_operator"],

@@ -6,11 +6,11 @@ rig TOML), ``pipeline`` (``ilt run`` and ``ilt status``), ``simulate`` (exact sc
 written as ISF directories with ground truth), ``demo`` (``ilt demo``).
 """
 
-import lazy_loader
+from ilt import lazy_face
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(
+__getattr__, __dir__, __all__ = lazy_face(
     __name__,
-    submod_attrs={
+    {
         "demo": ["run_demo"],
         "options": ["StageOption"],
         "pipeline": ["load_run_config", "run_pipeline", "workspace_status"],

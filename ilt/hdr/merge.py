@@ -114,13 +114,14 @@ def merge_bracket(
     row = int(np.prod(shape[1:], dtype=np.int64))
     step = max(1, STRIP_SAMPLES // max(row, 1))
     any_unclipped = bright = False
+    code_slope = None if slope is None else _CodeSlope(slope, response)  # its table once a merge
     for r0 in range(0, shape[0], step):
         rows = slice(r0, r0 + step)
         u, b = _merge_rows(
             [f[rows] for f in frames], e,
             [_clipped(k, frames[k], rows, saturated, saturation) for k in range(K)],
             noise, response, full_scale, floor, None if dark is None else dark[rows], dtype,
-            radiance[rows], count[rows], all_clipped[rows], slope)
+            radiance[rows], count[rows], all_clipped[rows], code_slope)
         any_unclipped |= u
         bright |= b
     if not any_unclipped:
@@ -135,7 +136,7 @@ STRIP_SAMPLES = 1 << 15
 
 
 def _merge_rows(frames, e, clipped, noise, response, full_scale, floor, dark, dtype,
-                radiance, count, all_clipped, slope=None) -> tuple[bool, bool]:
+                radiance, count, all_clipped, code_slope=None) -> tuple[bool, bool]:
     """`merge_bracket` on a strip of rows, written into ``radiance``, ``count`` and
     ``all_clipped`` (views); returns (any sample unclipped, any sample above ``floor``)."""
     K = len(frames)
@@ -176,11 +177,11 @@ def _merge_rows(frames, e, clipped, noise, response, full_scale, floor, dark, dt
         use = (x0 > floor / ek) | ~seen  # near-black only where a longer sample exists
         seen |= unclipped[k]
         use &= unclipped[k]
-        if slope is None:
+        if code_slope is None:
             np.add(signal, read / ek, out=weight)
         else:  # codes through f: the read and quantisation variance scaled by f'^2
             predicted = np.clip(x0 * (ek / full_scale), 0.0, 1.0)
-            np.add(signal, read * _code_slope(slope, response, predicted) ** 2 / ek, out=weight)
+            np.add(signal, read * code_slope(predicted) ** 2 / ek, out=weight)
         np.divide(use, weight, out=weight)
         np.multiply(weight, linear[k], out=tmp)
         num += tmp
@@ -195,13 +196,18 @@ def _merge_rows(frames, e, clipped, noise, response, full_scale, floor, dark, dt
     return bool(any_unclipped.any()), bright
 
 
-def _code_slope(slope, response, linear: np.ndarray) -> np.ndarray:
-    """f'(M) at the code M whose f(M) is ``linear`` (normalised): f is monotone, so M is
-    read off a table of f by interpolation."""
-    grid = np.linspace(0.0, 1.0, 1025)
-    table = np.maximum.accumulate(np.asarray(response(grid), dtype=np.float64))
-    m = np.interp(linear, table, grid)
-    return np.maximum(np.asarray(slope(m), dtype=np.float64), 1e-3).astype(linear.dtype, copy=False)
+class _CodeSlope:
+    """f'(M) at the code M whose f(M) is a given normalised linear value: f is monotone,
+    so M is read off a table of f (made once) by interpolation."""
+
+    def __init__(self, slope, response):
+        self.slope = slope
+        self.grid = np.linspace(0.0, 1.0, 1025)
+        self.table = np.maximum.accumulate(np.asarray(response(self.grid), dtype=np.float64))
+
+    def __call__(self, linear: np.ndarray) -> np.ndarray:
+        m = np.interp(linear, self.table, self.grid)
+        return np.maximum(np.asarray(self.slope(m), dtype=np.float64), 1e-3).astype(linear.dtype, copy=False)
 
 
 def _ratio(num, den, fallback=None) -> np.ndarray:

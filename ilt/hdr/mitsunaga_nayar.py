@@ -206,7 +206,7 @@ def fit_response(
     if q_idx.size > max_pairs:
         keep = np.sort(rng.choice(q_idx.size, max_pairs, replace=False))
         q_idx, p_idx = q_idx[keep], p_idx[keep]
-    pairs = _Pairs(m[q_idx, p_idx], m[q_idx + 1, p_idx], q_idx, Q - 1)
+    pairs = _Pairs(m[q_idx, p_idx], m[q_idx + 1, p_idx], q_idx)
     missing = np.setdiff1d(np.arange(Q - 1), q_idx)
     if missing.size:
         raise CalibrationError(f"exposures {missing[0]} and {missing[0] + 1} (shortest first) share no usable "
@@ -279,8 +279,8 @@ def _held_out_error(check, d, ratios, n, gamma, mid, noise, how) -> float:
 class _Pairs:
     """Pixel pairs (lo: exposure q, hi: exposure q + 1) and their basis values, per degree."""
 
-    def __init__(self, lo, hi, q, groups):
-        self.lo, self.hi, self.q, self.groups = lo, hi, q, groups
+    def __init__(self, lo, hi, q):
+        self.lo, self.hi, self.q = lo, hi, q
         self._basis: dict[tuple[int, float], tuple] = {}
 
     @property
@@ -289,7 +289,7 @@ class _Pairs:
 
     def subset(self, mask) -> _Pairs:
         """The pairs at ``mask`` (bool, or indices)."""
-        return _Pairs(self.lo[mask], self.hi[mask], self.q[mask], self.groups)
+        return _Pairs(self.lo[mask], self.hi[mask], self.q[mask])
 
     def basis(self, n: int, gamma: float = 1.0):
         """(phi(lo), phi(hi), phi'(lo), phi'(hi)), each (pairs, n)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import hashlib
+import io
 import json
 import logging
 import math
@@ -133,11 +134,14 @@ def read_ldr_frame(path: Path, record: FrameRecord | None = None, hand_time=None
     (origin (0, 0), scale 1). A code at the maximum counts as saturated."""
     from ilt.io.exposure import read_exif, resolve_facts
 
-    image, top = _read_codes(path, MergeError)
-    fingerprint = fingerprint_file(path)
+    if not path.is_file():
+        raise MergeError(f"{path}: no such file")
+    data = path.read_bytes()  # read once: hashed, decoded and its EXIF parsed from memory
+    fingerprint = "sha256:" + hashlib.sha256(data).hexdigest()
     if expected is not None and fingerprint != expected:
         raise RawError(f"{path}: its sha256 is not the one capture.jsonl logged when it was shot")
-    tags = read_exif(path)
+    image, top = _read_codes(path, MergeError, data)
+    tags = read_exif(io.BytesIO(data))
     facts = resolve_facts(path, record.exposure_time if record else None,
                           record.f_number if record else None, tags, None, hand_time)
     saturated = (image >= top - 0.5).any(axis=2) if image.ndim == 3 else image >= top - 0.5
@@ -151,17 +155,20 @@ def read_ldr_frame(path: Path, record: FrameRecord | None = None, hand_time=None
     return Frame(np.ascontiguousarray(image, dtype=np.float32), info, fingerprint)
 
 
-def _read_codes(path: Path, error) -> tuple[np.ndarray, float]:
-    """(codes as read by OpenCV, their maximum) of an 8/16-bit image, OpenCV's own
-    warnings silenced (its TIFF reader logs every EXIF tag it does not know)."""
+def _read_codes(path: Path, error, data: bytes | None = None) -> tuple[np.ndarray, float]:
+    """(codes as read by OpenCV, their maximum) of an 8/16-bit image (``data``: its
+    bytes, when already read), OpenCV's own warnings silenced (its TIFF reader logs every
+    EXIF tag it does not know)."""
     import cv2
 
-    if not path.is_file():
+    if data is None and not path.is_file():
         raise error(f"{path}: no such file")
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    flags = cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH
     try:
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+        image = cv2.imread(str(path), flags) if data is None else \
+            cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     finally:
         cv2.utils.logging.setLogLevel(level)
     if image is None:

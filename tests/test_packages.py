@@ -23,7 +23,7 @@ LAYERS = [
     ["hdr"],
     ["spots"],
     ["isf"],
-    ["decompose"],
+    ["decompose", "refine"],
     ["report", "evaluate"],
     ["workspace"],
     ["cli"],

@@ -81,16 +81,26 @@ def to_steps(plan: Plan, resolution: tuple[float, float]) -> np.ndarray:
     return np.rint(plan.targets * 3600.0 / np.asarray(resolution, dtype=np.float64)).astype(np.int64)
 
 
-def check_limits(steps: np.ndarray, limits: dict[str, int]) -> None:
-    """Every target inside the unit's limits, checked before anything moves."""
+def out_of_limits(steps: np.ndarray, limits: dict[str, int]) -> tuple[str, int, np.ndarray, int, int] | None:
+    """The first axis on which some of (m, 2) ``steps`` fall outside ``limits``: (axis,
+    column, indices of the targets out of range, lo, hi); None when all are inside."""
     for axis, col in (("pan", 0), ("tilt", 1)):
         lo, hi = limits[f"{axis}_min"], limits[f"{axis}_max"]
         bad = np.flatnonzero((steps[:, col] < lo) | (steps[:, col] > hi))
         if bad.size:
-            j = int(bad[0])
-            raise ConfigError(
-                f"[plan] beam {j}: {axis} {int(steps[j, col])} steps is outside the unit's limits "
-                f"[{lo}, {hi}] ({bad.size} beam(s) out of range); narrow the plan")
+            return axis, col, bad, lo, hi
+    return None
+
+
+def check_limits(steps: np.ndarray, limits: dict[str, int]) -> None:
+    """Every target inside the unit's limits, checked before anything moves."""
+    outside = out_of_limits(steps, limits)
+    if outside:
+        axis, col, bad, lo, hi = outside
+        j = int(bad[0])
+        raise ConfigError(
+            f"[plan] beam {j}: {axis} {int(steps[j, col])} steps is outside the unit's limits "
+            f"[{lo}, {hi}] ({bad.size} beam(s) out of range); narrow the plan")
 
 
 def planned_beams(plan) -> int:

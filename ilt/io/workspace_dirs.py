@@ -7,6 +7,7 @@ WORKSPACE/
   hdr/          ilt merge        one linear EXR per beam
   spots/        ilt centroids    spots.csv, overlay.png
   isf/          ilt build-isf    T.npy, samples.csv
+  refine/       ilt refine       refine.csv: where the next beams should land
   photos/       ilt run          photos merged from their brackets (simulated rig)
   decompose/    ilt decompose    one directory of bounce images per photo
   report/       ilt report       index.html and its PNGs
@@ -28,6 +29,7 @@ STAGE_DIRS = {
     "merge": "hdr",
     "centroids": "spots",
     "build-isf": "isf",
+    "refine": "refine",
     "photos": "photos",
     "decompose": "decompose",
 }

@@ -25,6 +25,8 @@ COMMANDS = {
     "merge": ["INPUTS", "-o/--output", "--bracket", "--times", "--dark", "--response", "--gain", "--read-noise",
               "--margin", "--color", "--compression", "-j/--workers", "--scheduler", "-w/--workspace", "--force",
               "--json"],
+    "refine": ["ISF_DIR", "-o/--output", "--beams", "--capture", "--min-spacing", "-w/--workspace", "--force",
+               "--json"],
     "report": ["-w/--workspace", "-o/--output", "--json"],
     "rig-emulator": ["--socket", "--fault", "--speed", "--laser-on", "--laser-off"],
     "run": ["CONFIG", "-w/--workspace", "--force", "--scheduler", "--json"],

@@ -1,0 +1,267 @@
+"""``ilt refine`` against uniform and random scans, on a pre-rendered beam lattice (issue 21).
+
+    python benchmarks/bench_refine.py [--scenes occluded,box,m] [--electrons 2e4] [--random 3]
+                                      [--keep DIR] [--timing-m 4096]
+
+Each scene is rendered once with a lattice twice as fine as its base scan along each
+axis (``ilt simulate SCENE --frames``: flatland 2m beams, the box (2n)^2 per face), and
+every scan below is a subset of the lattice's beam frames, run through ``ilt centroids``,
+``ilt build-isf`` and ``ilt decompose`` as a user runs them:
+
+- **base**: every other lattice beam (m beams);
+- **refine**: base plus the K = m/2 beams ``ilt refine --beams K`` asks for, each taken as
+  the nearest lattice beam not yet scanned (the rig's aim is that coarse);
+- **random**: base plus K lattice beams drawn at random (``--random`` draws; the median);
+- **uniform**: the lattice beams nearest a uniform scan of m ... 2m beams (flatland) or n^2
+  per face for n ... 2n (box).
+
+Errors: relative L2 of the full-resolution bounces 1-3 of every photo (room, flashlight,
+projector) against the exact ones, over the pixels the base scan covers, on the frames
+with photon and read noise (``--electrons`` photo-electrons at the brightest spot pixel,
+as benchmarks/bench_coverage.py makes them; 0: noise-free). The figure of merit is the
+mean over photos and bounces, and the **equivalent uniform beams**: the uniform beam count
+with refine's error, interpolated in log error over the uniform sweep; ratio to m + K.
+
+``--timing-m``: also time refine's decision (``ilt.refine.place_beams``) on a random
+m x m T with spots on a grid against build-isf's reading of the same T from disk
+(the floor of build-isf's time; build-isf also decodes m frames): the issue's bar is 10%.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+PHOTOS = ("room", "flashlight", "projector")
+
+
+def _sibling(name: str):
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+coverage_bench = _sibling("bench_coverage")
+
+
+def run(*args):
+    subprocess.run([sys.executable, "-m", "ilt", "-q", *map(str, args)], check=True)
+
+
+def lattice_parameters(scene: str, base_m: int) -> tuple[int, float, float]:
+    """(lattice beams, px_per_beam, spot) for a base scan of ``base_m`` beams: the base's
+    frame size and physical spot size, at twice the density along each axis."""
+    px, spot = coverage_bench.frame_parameters(scene, base_m)
+    if scene == "box":
+        n = round(np.sqrt(base_m / 3))
+        return 3 * (2 * n) ** 2, px / 2, min(1.0, spot * 2)
+    return 2 * base_m, px / 2, min(1.0, spot * 2)
+
+
+def lattice_spots(spots_csv: Path) -> np.ndarray:
+    import csv
+
+    with open(spots_csv, newline="") as f:
+        rows = list(csv.DictReader(f))
+    return np.array([[float(r["x"]), float(r["y"])] for r in rows])
+
+
+def subset(lattice_hdr: Path, beams: list[int], out: Path) -> Path:
+    """``out``: an HDR directory of the lattice frames ``beams`` (hard links), renumbered, as
+    a rig that scanned only them would give."""
+    out.mkdir(parents=True)
+    manifest = json.loads((lattice_hdr / "manifest.json").read_text())
+    for n, b in enumerate(sorted(beams)):
+        os.link(lattice_hdr / f"beam-{b:05d}.exr", out / f"beam-{n:05d}.exr")
+    keep = {k: manifest[k] for k in ("pixel_mapping", "frame_shape") if k in manifest}
+    (out / "manifest.json").write_text(json.dumps({**keep, "layout": [1, len(beams)]}))
+    return out
+
+
+def scan(case: Path, hdr: Path, name: str, beams: list[int]) -> Path:
+    """centroids, build-isf and decompose of the subset; the scan's directory."""
+    where = case / f"scans-{hdr.name}" / name
+    if (where / "dec").exists():
+        return where
+    shutil.rmtree(where, ignore_errors=True)
+    frames = subset(hdr, beams, where / "hdr")
+    run("centroids", frames, "-o", where / "spots")
+    run("build-isf", frames, where / "spots", "-o", where / "isf")
+    run("decompose", "--isf", where / "isf", *[case / "photos" / f"{p}.exr" for p in PHOTOS], "-o", where / "dec",
+        "--no-cache")
+    return where
+
+
+def errors(case: Path, where: Path, mask: np.ndarray) -> np.ndarray:
+    """(photos, 3) relative L2 errors of bounces 1-3 over ``mask``."""
+    from ilt.io.exr import read_exr
+
+    out = np.empty((len(PHOTOS), 3))
+    for p, photo in enumerate(PHOTOS):
+        truth = np.load(case / "truth" / "photos" / f"{photo}-bounces.npy").astype(np.float64)
+        for n in range(3):
+            est = read_exr(where / "dec" / photo / f"bounce-{n + 1}.exr")[0][..., 0].astype(np.float64)
+            out[p, n] = np.linalg.norm((est - truth[n])[mask]) / np.linalg.norm(truth[n][mask])
+    return out
+
+
+def covered(where: Path, photo: str = "room") -> np.ndarray:
+    from ilt.io.exr import read_exr
+
+    return read_exr(where / "dec" / photo / "coverage.exr")[0][..., 0] > 0
+
+
+def nearest_unused(targets: np.ndarray, spots: np.ndarray, used: set[int]) -> list[int]:
+    chosen = []
+    for t in targets:
+        for b in np.argsort(np.linalg.norm(spots - t, axis=1)):
+            if int(b) not in used:
+                used.add(int(b))
+                chosen.append(int(b))
+                break
+    return chosen
+
+
+def uniform_sets(scene: str, lattice_m: int, spots: np.ndarray) -> dict[int, list[int]]:
+    """Beam count -> lattice beams nearest a uniform scan of that many."""
+    out = {}
+    if scene == "box":
+        big = round(np.sqrt(lattice_m / 3))
+        per_face = big * big
+        for n in range(big // 2, big + 1):
+            grid = np.round(np.linspace(0, big - 1, n)).astype(int) if n > 1 else np.array([0])
+            out[3 * n * n] = sorted(f * per_face + r * big + c for f in range(3) for r in grid for c in grid)
+        return out
+    for count in np.unique(np.round(np.linspace(lattice_m // 2, lattice_m, 6)).astype(int)):
+        out[int(count)] = sorted(set(np.round(np.linspace(0, lattice_m - 2, count)).astype(int).tolist())
+                                 if count < lattice_m else range(lattice_m))
+    return out
+
+
+def equivalent(errors_by_m: dict[int, float], target: float) -> float:
+    """The uniform beam count whose error equals ``target`` (log-linear interpolation;
+    beyond the sweep: its end, flagged by the caller)."""
+    ms = sorted(errors_by_m)
+    es = [errors_by_m[m] for m in ms]
+    if target >= es[0]:
+        return float(ms[0])
+    for (m0, e0), (m1, e1) in zip(zip(ms, es), zip(ms[1:], es[1:])):
+        if e1 <= target <= e0:
+            t = (np.log(e0) - np.log(target)) / max(np.log(e0) - np.log(e1), 1e-300)
+            return float(m0 + t * (m1 - m0))
+    return float(ms[-1])
+
+
+def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: int, rng) -> None:
+    lattice_m, px, spot = lattice_parameters(scene, base_m)
+    case = root / f"{scene}-{lattice_m}"
+    if not (case / "hdr").exists():
+        run("simulate", scene, "--frames", "--beams", lattice_m, "--px-per-beam", px, "--spot", spot, "-o", case,
+            "--force")
+    hdr = case / "hdr"
+    if electrons > 0:
+        if not (case / "hdr-noisy").exists():
+            gain = electrons / coverage_bench.peak_of(hdr)
+            coverage_bench.noisy_copy(hdr, case / "hdr-noisy", gain, rng)
+        hdr = case / "hdr-noisy"
+    if not (case / "lattice-spots").exists():
+        run("centroids", hdr, "-o", case / "lattice-spots")
+    spots = lattice_spots(case / "lattice-spots" / "spots.csv")
+    lattice_m = len(spots)   # the beams that hit a visible surface
+    uniform = uniform_sets(scene, lattice_m, spots)
+    base_beams = uniform[min(uniform)]
+    base = scan(case, hdr, f"uniform-{len(base_beams)}", base_beams)
+    mask = covered(base)
+    k = len(base_beams) // 2
+    results = {}
+    for count, beams in uniform.items():
+        results[f"uniform {count}"] = (count, errors(case, scan(case, hdr, f"uniform-{count}", beams), mask))
+    started = time.perf_counter()
+    run("refine", base / "isf", "-o", base / "refine", "--beams", k, "--force")
+    refine_seconds = time.perf_counter() - started
+    targets = np.loadtxt(base / "refine" / "refine.csv", delimiter=",", skiprows=1, ndmin=2)[:, :2]
+    added = nearest_unused(targets, spots, set(base_beams))
+    results["refine"] = (len(base_beams) + len(added),
+                         errors(case, scan(case, hdr, f"refine-{k}", base_beams + added), mask))
+    unused = sorted(set(range(lattice_m)) - set(base_beams))
+    draws_err = []
+    for d in range(draws):
+        extra = rng.choice(unused, size=k, replace=False).tolist()
+        draws_err.append(errors(case, scan(case, hdr, f"random-{k}-{d}", base_beams + extra), mask))
+    results["random (median)"] = (len(base_beams) + k, np.median(draws_err, axis=0))
+    uniform_mean = {c: float(e.mean()) for c, e in (results[f"uniform {c}"] for c in uniform)}
+    noise = f"{electrons:g} e-" if electrons > 0 else "noise-free"
+    print(f"\n### {scene}, base m = {len(base_beams)}, K = {k}, lattice {lattice_m}, {noise}; "
+          f"refine decided in {refine_seconds:.2f} s (the command)\n")
+    print("| scan | beams | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
+          + " | mean | equivalent uniform beams |")
+    print("|---|---|" + "---|" * (3 * len(PHOTOS)) + "---|---|")
+    for name, (count, e) in results.items():
+        eq = equivalent(uniform_mean, float(e.mean()))
+        print(f"| {name} | {count} | " + " | ".join(f"{v:.4f}" for v in e.ravel())
+              + f" | {e.mean():.4f} | {eq:.0f} ({eq / count:.2f}x) |", flush=True)
+
+
+def bench_timing(m: int, root: Path) -> None:
+    """Refine's decision against reading T from disk (build-isf's floor) at m beams."""
+    from ilt.refine.indicator import place_beams
+
+    side = int(np.ceil(np.sqrt(m)))
+    yy, xx = np.divmod(np.arange(m), side)
+    samples = np.column_stack([xx * 8.0, yy * 8.0]) + np.random.default_rng(1).uniform(-0.5, 0.5, (m, 2))
+    T = np.abs(np.random.default_rng(2).standard_normal((m, m)))
+    T /= np.linalg.norm(T, axis=0)
+    path = root / "T-timing.npy"
+    np.save(path, T)
+    del T
+    read, decide = [], []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        T = np.load(path)
+        float(T.sum())
+        read.append(time.perf_counter() - t0)
+        Tm = np.load(path, mmap_mode="r")
+        t0 = time.perf_counter()
+        place_beams(Tm, samples, m // 8)
+        decide.append(time.perf_counter() - t0)
+    print(f"\nm = {m}: refine's decision {np.median(decide):.2f} s (median of 3), reading T.npy "
+          f"{np.median(read):.2f} s")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="occluded,box,m")
+    ap.add_argument("--base", default="occluded:48,box:108,m:48,textured:48",
+                    help="base beams per scene, scene:m,...")
+    ap.add_argument("--electrons", type=float, default=2e4, help="0: noise-free frames")
+    ap.add_argument("--random", type=int, default=3, help="random draws")
+    ap.add_argument("--keep", type=Path, default=None)
+    ap.add_argument("--timing-m", type=int, default=0)
+    args = ap.parse_args()
+    root = args.keep or Path(tempfile.mkdtemp(prefix="ilt-refine-"))
+    root.mkdir(parents=True, exist_ok=True)
+    base = {k: int(v) for k, v in (item.split(":") for item in args.base.split(","))}
+    rng = np.random.default_rng(0)
+    try:
+        for scene in args.scenes.split(","):
+            bench_scene(root, scene, base[scene], args.electrons, args.random, rng)
+        if args.timing_m:
+            bench_timing(args.timing_m, root)
+    finally:
+        if args.keep is None:
+            shutil.rmtree(root, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

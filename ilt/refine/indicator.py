@@ -1,0 +1,224 @@
+"""Where the next beams help: an error indicator from T alone, and greedy placement.
+
+The full-resolution bounces are worst where the scene's transport changes faster than
+the beam spacing: at folds, occluding edges and texture, where one cell holds surfaces
+that the neighbouring beams light differently (docs/fullres.md, Limits). T shows it
+without any ground truth. Where the scene is smooth, a beam's column of T is close to
+the affine interpolation of its neighbours' columns (the neighbours: the spots'
+Delaunay triangulation, or consecutive spots of a line); across a fold it is not. The
+**prediction residual** of beam j
+
+    r_j = || t_j - sum_k w_k t_k || / || t_j ||
+
+over T's unit columns, with the rows of the spots of j and its neighbours k left out, and
+``w`` the least-norm weights that reproduce an affine function of the spot pixels at j,
+is 0 where the columns vary linearly across the spots (a fine cell's plane models that:
+ilt.isf.fine) and of order 1 where they jump. A first difference of neighbouring columns
+would also flag smooth gradients, which the fine fit already handles: on the box it put
+new beams all over the faces, and a refined scan of 162 beams only matched a uniform one of
+178, where this residual does better (docs/refine.md).
+
+An edge ``e = (i, k)`` has the share ``s_e = w_e (r_i^2 + r_k^2) / 2``, ``w_e`` the region
+it stands for (its length in pixels to the power of the scan's dimension: 1 for a line,
+2 for a grid), and the scan's **indicator** is ``E = sqrt(sum_e s_e / sum_e w_e)``. A new
+beam at the middle of edge e halves it: of the two halves, the one holding the change
+keeps the residual and the other is smooth, so the edge's share falls by half (the
+**gain** of that beam, in units of E^2), and each half is left with ``s_e / 4``.
+Placement is greedy on the gain, with the halves back in the queue, so a sharp fold can
+take a beam at a quarter of the spacing before a smooth region gets one; no beam lands
+closer than ``min_spacing`` pixels to another, nor outside the ISF's cells (where the
+scan saw no surface).
+
+Costs: one pass over T's rows in blocks, a sparse product of O(m x edges) (about 3 m
+edges in 2D), so the decision at m = 4096 reads T once (benchmarks/bench_refine.py).
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+#: rows of T read at once (a block of rows x edges float64 is about 25 MB at 12 k edges)
+ROW_BLOCK = 256
+#: a Delaunay edge longer than this many times the nearer of its ends' nearest-neighbour distances
+#: bridges a gap in the scan (the hull's slivers, void between surfaces): not a neighbour
+MAX_EDGE_RATIO = 2.5
+#: spots whose rms distance from their principal line is below this fraction of their
+#: spacing along it are a line (a flatland plan's spots jitter across it by a pixel)
+LINE_SPREAD = 0.25
+
+
+class RefineError(ValueError):
+    """Refinement that cannot be decided; the message names the file or the value."""
+
+
+@dataclass(frozen=True)
+class Edges:
+    """Neighbouring spots: ``pairs`` (E, 2) int rows of T; ``length`` (E,) pixels;
+    ``dimension`` 1 (spots on a line) or 2; ``coords`` (m, dimension) the spots in it
+    (a line: the position along it, so that a pixel of jitter across it is no slope)."""
+
+    pairs: np.ndarray
+    length: np.ndarray
+    dimension: int
+    coords: np.ndarray
+
+
+def neighbour_edges(samples: np.ndarray) -> Edges:
+    """The neighbour pairs of (m, 2) spot pixels: consecutive along the line when the
+    spots are collinear, else the Delaunay edges that do not bridge a gap."""
+    samples = np.asarray(samples, dtype=np.float64)
+    centred = samples - samples.mean(axis=0)
+    _, singular, axes = np.linalg.svd(centred, full_matrices=False)
+    along = np.sort(centred @ axes[0])
+    # a line: the spots stray across it by less than a LINE_SPREAD of their spacing
+    spacing = float(np.median(np.diff(along))) if len(samples) > 1 else 0.0
+    if len(samples) < 3 or singular[1] / np.sqrt(len(samples)) <= LINE_SPREAD * spacing:
+        coords = (centred @ axes[0])[:, None]
+        order = np.argsort(coords[:, 0], kind="stable")
+        pairs, dimension = np.stack([order[:-1], order[1:]], axis=1), 1
+    else:
+        try:
+            simplices = Delaunay(samples).simplices
+        except QhullError as exc:
+            raise RefineError(f"the spots cannot be triangulated ({exc})") from None
+        pairs = np.concatenate([simplices[:, [0, 1]], simplices[:, [1, 2]], simplices[:, [0, 2]]])
+        pairs = np.unique(np.sort(pairs, axis=1), axis=0)
+        dimension, coords = 2, samples
+    length = np.linalg.norm(samples[pairs[:, 0]] - samples[pairs[:, 1]], axis=1)
+    if dimension == 2:
+        nn = cKDTree(samples).query(samples, k=2)[0][:, 1]
+        keep = length <= MAX_EDGE_RATIO * np.minimum(nn[pairs[:, 0]], nn[pairs[:, 1]])
+        pairs, length = pairs[keep], length[keep]
+    return Edges(pairs, length, dimension, coords)
+
+
+def neighbour_lists(edges: Edges, m: int) -> list[np.ndarray]:
+    """Each spot's neighbours (rows of T) from the edges; a spot with fewer than
+    dimension + 1 (the end of a line, a corner of a grid: too few to interpolate an affine
+    function) also takes its neighbours' neighbours, so that it is extrapolated."""
+    direct = [set() for _ in range(m)]
+    for a, b in edges.pairs.tolist():
+        direct[a].add(b)
+        direct[b].add(a)
+    out = []
+    for j, near in enumerate(direct):
+        if 0 < len(near) < edges.dimension + 1:
+            near = near | set().union(*(direct[k] for k in near)) - {j}
+        out.append(np.array(sorted(near), dtype=np.int64))
+    return out
+
+
+def interpolation_weights(coords: np.ndarray, j: int, neighbours: np.ndarray) -> np.ndarray:
+    """The least-norm weights that reproduce an affine function of the spots' coordinates
+    (m, d) at spot j from its neighbours: sum w = 1, sum w (x_k - x_j) = 0."""
+    rel = coords[neighbours] - coords[j]
+    A = np.vstack([np.ones(len(neighbours)), rel.T])                 # (1 + d, n)
+    rhs = np.zeros(A.shape[0])
+    rhs[0] = 1.0
+    return np.linalg.lstsq(A, rhs, rcond=1e-9)[0]
+
+
+def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.ndarray]) -> np.ndarray:
+    """(m,) ``r_j`` of the module doc: how far beam j's column of T is from the affine
+    interpolation of its neighbours' columns, relative to its own, over the rows that are
+    not the spots of j or its neighbours. T may be a memory map: one pass over its rows
+    in blocks; the interpolation is a sparse (m, m) matrix W, and T W the residuals."""
+    m = T.shape[0]
+    weights = [interpolation_weights(coords, j, near) if near.size else np.empty(0)
+               for j, near in enumerate(neighbours)]
+    rows = np.concatenate([np.concatenate([[j], near]) for j, near in enumerate(neighbours)])
+    cols = np.concatenate([np.full(1 + near.size, j) for j, near in enumerate(neighbours)])
+    vals = np.concatenate([np.concatenate([[1.0], -w]) for w in weights])
+    W = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(m, m))
+    residual2, norm2 = np.zeros(m), np.zeros(m)
+    for r0 in range(0, m, ROW_BLOCK):
+        block = np.asarray(T[r0:r0 + ROW_BLOCK], dtype=np.float64)
+        R = (W.T @ block.T).T                                   # block @ W, W sparse
+        residual2 += np.einsum("rj,rj->j", R, R)
+        norm2 += np.einsum("rj,rj->j", block, block)
+    # leave out the rows of the spots of j and its neighbours
+    for j, (near, w) in enumerate(zip(neighbours, weights)):
+        own = np.concatenate([[j], near])
+        column = np.asarray(T[own, j], dtype=np.float64)
+        local = column - (np.asarray(T[np.ix_(own, near)], dtype=np.float64) @ w if near.size else 0.0)
+        residual2[j] -= float(local @ local)
+        norm2[j] -= float(column @ column)
+    scale = np.sqrt(np.maximum(norm2, 0.0))
+    return np.where(scale > 0, np.sqrt(np.maximum(residual2, 0.0)) / np.where(scale > 0, scale, 1.0), 0.0)
+
+
+@dataclass(frozen=True)
+class Placement:
+    """The chosen beams, best first: ``targets`` (K, 2) pixels (x, y), ``gain`` (K,) the
+    indicator's share each removes, ``edges`` (K, 2) the spots (rows of T) between which
+    each lands (the ends of the half it splits are those spots or earlier targets, named by
+    row ``m + n`` for target n); ``before`` / ``after`` the indicator E of the scan and of
+    the scan with the targets added; ``residual`` (m,) each beam's ``r_j``, for reports."""
+
+    targets: np.ndarray
+    gain: np.ndarray
+    edges: np.ndarray
+    before: float
+    after: float
+    residual: np.ndarray
+
+
+def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: float | None = None,
+                covered=None) -> Placement:
+    """Up to ``count`` new beam targets (pixels) for the scan of T (m, m) with spots at
+    ``samples`` (m, 2), greedy on the gain of the module doc.
+
+    min_spacing: no target closer than this (pixels) to a spot or another target (default:
+    a quarter of the median neighbour distance, so an edge is split at most twice);
+    covered: ``covered(points (n, 2)) -> (n,) bool``, False where no beam should go (no
+    cell there); None: everywhere. Fewer than ``count`` targets come back when no edge
+    has room or gain left.
+    """
+    if count < 1:
+        raise RefineError(f"the number of new beams must be at least 1, got {count}")
+    samples = np.asarray(samples, dtype=np.float64)
+    edges = neighbour_edges(samples)
+    residual = prediction_residual(T, edges.coords, neighbour_lists(edges, len(samples)))
+    weight = edges.length ** edges.dimension
+    score = weight * (residual[edges.pairs[:, 0]] ** 2 + residual[edges.pairs[:, 1]] ** 2) / 2
+    total_weight = float(weight.sum())
+    if total_weight <= 0:
+        raise RefineError("the spots have no neighbours at a distance: nothing to refine")
+    before = float(np.sqrt(score.sum() / total_weight))
+    spacing = float(np.median(edges.length)) / 4 if min_spacing is None else float(min_spacing)
+    points = [tuple(p) for p in samples]
+    # a max-heap on the gain (score / 2): (-score, tie-break, end a, end b)
+    heap = [(-float(s), n, int(a), int(b)) for n, (s, (a, b)) in enumerate(zip(score, edges.pairs)) if s > 0]
+    heapq.heapify(heap)
+    tree, placed = cKDTree(samples), []
+    targets, gains, ends = [], [], []
+    remaining = float(score.sum())
+    tie = len(heap)
+    while heap and len(targets) < count:
+        neg, _, a, b = heapq.heappop(heap)
+        s = -neg
+        mid = (np.asarray(points[a]) + np.asarray(points[b])) / 2
+        half = np.linalg.norm(np.asarray(points[a]) - np.asarray(points[b])) / 2
+        if half < spacing or (covered is not None and not bool(np.asarray(covered(mid[None]))[0])):
+            continue
+        if tree.query(mid)[0] < spacing * (1 - 1e-9) or any(np.hypot(*(mid - q)) < spacing for q in placed):
+            continue
+        n = len(points)
+        points.append(tuple(mid))
+        placed.append(mid)
+        targets.append(mid)
+        gains.append(s / 2)
+        ends.append((a, b))
+        remaining -= s / 2
+        for end in (a, b):
+            heapq.heappush(heap, (-s / 4, tie, end, n))
+            tie += 1
+    after = float(np.sqrt(max(remaining, 0.0) / total_weight))
+    return Placement(targets=np.array(targets).reshape(-1, 2), gain=np.array(gains) / total_weight,
+                     edges=np.array(ends, dtype=np.int64).reshape(-1, 2), before=before, after=after,
+                     residual=residual)

@@ -1,0 +1,192 @@
+"""ilt refine: the edge discrepancy and greedy placement against constructed T's with a
+known answer, the pan/tilt aim against an affine rig, and the command's files and refusals."""
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from ilt.cli import cli
+from ilt.refine import RefineError, aim, neighbour_edges, place_beams, prediction_residual
+from ilt.refine.indicator import neighbour_lists
+
+
+def _line_T(m: int, jump: int) -> np.ndarray:
+    """Unit columns: beams 0..jump light pixel row 0 region, beams after it light the
+    last rows (disjoint), each beam its own row too: a fold between beam jump and jump+1."""
+    T = np.zeros((m, m))
+    for j in range(m):
+        T[j, j] = 1.0
+        others = [i for i in range(m) if i != j and (i > jump if j <= jump else i <= jump)]
+        T[others, j] = 0.1
+    return T / np.linalg.norm(T, axis=0)
+
+
+def _line_samples(m: int, spacing: float = 10.0, jitter: float = 0.5) -> np.ndarray:
+    """Spots on a row, each up to ``jitter`` pixels off it (as a flatland scan's)."""
+    rng = np.random.default_rng(0)
+    return np.column_stack([np.arange(m) * spacing + 5.0, 20.0 + rng.uniform(-jitter, jitter, m)])
+
+
+def test_a_line_of_spots_is_its_consecutive_pairs():
+    edges = neighbour_edges(_line_samples(9)[::-1])
+    assert edges.dimension == 1
+    assert sorted(map(tuple, np.sort(edges.pairs, axis=1))) == [(k, k + 1) for k in range(8)]
+
+
+def test_a_grid_of_spots_is_its_triangulation_without_bridges():
+    yy, xx = np.mgrid[0:4, 0:5]
+    samples = np.column_stack([xx.ravel() * 10.0, yy.ravel() * 10.0])
+    samples = np.vstack([samples, [[200.0, 200.0]]])          # a far spot: no neighbour edge reaches it
+    edges = neighbour_edges(samples)
+    assert edges.dimension == 2
+    assert not np.any(edges.pairs == 20)
+    # every horizontal and vertical neighbour is an edge (and one diagonal per square)
+    pairs = set(map(tuple, np.sort(edges.pairs, axis=1)))
+    assert all((r * 5 + c, r * 5 + c + 1) in pairs for r in range(4) for c in range(4))
+    assert len(pairs) == 4 * 4 + 3 * 5 + 12
+
+
+def test_the_residual_is_zero_where_columns_vary_linearly_ends_included():
+    m = 9
+    samples = _line_samples(m)
+    edges = neighbour_edges(samples)
+    a, b = np.random.default_rng(1).uniform(1, 2, (2, m, 1))
+    T = a + b * edges.coords[:, 0][None, :]                        # column j = a + x_j b, x along the line
+    r = prediction_residual(T, edges.coords, neighbour_lists(edges, m))
+    assert np.allclose(r, 0.0, atol=1e-12)
+
+
+def test_the_residual_across_a_fold_is_the_hand_computed_one(monkeypatch):
+    monkeypatch.setattr("ilt.refine.indicator.ROW_BLOCK", 3)      # several row blocks
+    edges = neighbour_edges(_line_samples(8, jitter=0.0))
+    r = prediction_residual(_line_T(8, jump=3), edges.coords, neighbour_lists(edges, 8))
+    # beam 3 (rows 2, 3, 4 left out): t_3 = 0.1/s on rows 5-7, its neighbours' mean 0.05/s
+    # on rows 0, 1, 5, 6, 7: r^2 = 5 * 0.05^2 / (3 * 0.1^2)
+    fold = np.sqrt(5 * 0.05 ** 2 / (3 * 0.1 ** 2))
+    assert r == pytest.approx([0, 0, 0, fold, fold, 0, 0, 0], abs=1e-12)
+
+
+def test_the_first_beam_splits_the_fold_then_its_neighbours_edges():
+    samples = _line_samples(8, jitter=0.0)
+    placement = place_beams(_line_T(8, jump=3), samples, 3)
+    mids = (samples[:-1] + samples[1:]) / 2
+    assert np.allclose(placement.targets[0], mids[3])
+    # edges 2-3 and 4-5 hold half the fold edge's share: more than its halves' quarter
+    assert {tuple(np.round(t, 9)) for t in placement.targets[1:]} == {tuple(np.round(mids[k], 9)) for k in (2, 4)}
+    lengths = np.linalg.norm(np.diff(samples, axis=0), axis=1)
+    r2 = 5 * 0.05 ** 2 / (3 * 0.1 ** 2)
+    share = np.array([lengths[3] * r2, lengths[2] * r2 / 2, lengths[4] * r2 / 2]) / lengths.sum()
+    assert sorted(placement.gain) == pytest.approx(sorted(share / 2), rel=1e-9)
+    assert placement.before ** 2 - placement.after ** 2 == pytest.approx(placement.gain.sum(), rel=1e-9)
+
+
+def test_no_beam_lands_outside_the_cells_nor_closer_than_min_spacing():
+    samples = _line_samples(8, jitter=0.0)
+    placement = place_beams(_line_T(8, jump=3), samples, 5, min_spacing=4.0,
+                            covered=lambda p: np.abs(p[:, 0] - 40.0) > 1.0)   # the fold's middle is off the surface
+    assert sorted(placement.targets[:, 0]) == pytest.approx([30.0, 50.0])
+    placement = place_beams(_line_T(8, jump=3), samples, 5, min_spacing=4.0)
+    assert len(placement.targets) == 3              # a half-edge of 5 px has no room for 4 px: no quarters
+
+
+def test_zero_beams_is_refused():
+    with pytest.raises(RefineError, match="at least 1"):
+        place_beams(_line_T(4, 1), _line_samples(4), 0)
+
+
+def test_the_aim_inverts_an_affine_rig_exactly():
+    rng = np.random.default_rng(3)
+    angles = rng.uniform(-10, 10, (40, 2))
+    A, b = np.array([[30.0, 4.0], [-3.0, 28.0]]), np.array([320.0, 240.0])
+    spots = angles @ A.T + b
+    want = rng.uniform(-8, 8, (5, 2))
+    assert np.allclose(aim(want @ A.T + b, spots, angles), want, atol=1e-9)
+
+
+# ------------------------------------------------------------------------- the command
+
+
+def run(*args):
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def table(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_refine_of_a_capture_gives_pixels_and_angles_between_its_beams(workspace):
+    result = run("refine", "-w", workspace, "--beams", 3)
+    assert result.exit_code == 0, result.output
+    out = workspace / "refine"
+    assert result.stdout.strip() == str(out / "refine.csv")
+    rows = table(out / "refine.csv")
+    assert len(rows) == 3 and list(rows[0]) == ["x", "y", "pan", "tilt", "gain"]
+    gains = [float(r["gain"]) for r in rows]
+    assert gains == sorted(gains, reverse=True) and gains[-1] > 0
+    plan = np.array(json.loads((workspace / "capture" / "manifest.json").read_text())["plan"]["targets"])
+    samples = table(workspace / "isf" / "samples.csv")
+    xs = np.array([float(s["x"]) for s in samples])
+    pans = plan[[int(s["beam"]) for s in samples], 0]
+    for r in rows:
+        x, pan = float(r["x"]), float(r["pan"])
+        k = int(np.searchsorted(xs, x))
+        # a target between two spots aims between their beams, near the linear interpolation
+        assert min(pans[k - 1], pans[k]) < pan < max(pans[k - 1], pans[k])
+        assert pan == pytest.approx(np.interp(x, xs, pans), abs=0.05 * abs(pans[k] - pans[k - 1]))
+        assert float(r["tilt"]) == pytest.approx(plan[0, 1], abs=1e-6)
+    summary = json.loads((out / "refine.json").read_text())
+    assert summary["beams"] == 3 and summary["indicator"]["after"] < summary["indicator"]["before"]
+    assert (out / "refine.png").stat().st_size > 0
+    assert json.loads((out / "manifest.json").read_text())["stage"] == "refine"
+
+
+def test_refine_of_bare_frames_gives_pixels_only(workspace, tmp_path):
+    bare = tmp_path / "bare"
+    shutil.copytree(workspace / "isf", bare)
+    result = run("refine", bare, "-o", tmp_path / "r", "--beams", 2, "-w", tmp_path)
+    assert result.exit_code == 0, result.output
+    assert table(tmp_path / "r" / "refine.csv")[0].keys() == {"x", "y", "gain"}
+
+
+def _refused(result, out, *words):
+    assert result.exit_code == 1, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ilt: error: "), result.output
+    assert all(w in lines[0] for w in words), lines[0]
+    assert not out.exists()
+
+
+def test_refine_without_spots_is_one_line_and_writes_nothing(workspace, tmp_path):
+    bare = tmp_path / "t-only"
+    bare.mkdir()
+    shutil.copy(workspace / "isf" / "T.npy", bare / "T.npy")
+    _refused(run("refine", bare, "-o", tmp_path / "r", "-w", tmp_path), tmp_path / "r", "samples.csv", "spots")
+
+
+def test_zero_beams_on_the_command_line_is_one_line_and_writes_nothing(workspace, tmp_path):
+    _refused(run("refine", workspace / "isf", "-o", tmp_path / "r", "--beams", 0), tmp_path / "r", "--beams")
+
+
+def test_a_target_out_of_the_units_reach_is_one_line_and_writes_nothing(workspace, tmp_path):
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    manifest = json.loads((workspace / "capture" / "manifest.json").read_text())
+    steps = np.array(manifest["steps"])
+    # the unit reaches the scan's beams but nothing between the first two
+    manifest["ptu"]["limits"].update(pan_min=int(np.sort(steps[:, 0])[1]) - 1)
+    (capture / "manifest.json").write_text(json.dumps(manifest))
+    # every edge gets a beam at 20 (each can take 3: --min-spacing is a quarter spacing)
+    result = run("refine", workspace / "isf", "-o", tmp_path / "r", "--beams", 20, "--capture", capture)
+    _refused(result, tmp_path / "r", "pan", "limits", str(capture / "manifest.json"))
+
+
+def test_refine_does_not_write_over_its_input(workspace):
+    before = sorted(p.name for p in (workspace / "isf").iterdir())
+    result = run("refine", workspace / "isf", "-o", workspace / "isf", "--force")
+    assert result.exit_code == 1 and "isf" in result.output
+    assert sorted(p.name for p in (workspace / "isf").iterdir()) == before

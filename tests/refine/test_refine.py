@@ -10,7 +10,13 @@ import pytest
 from click.testing import CliRunner
 
 from ilt.cli import cli
-from ilt.refine import RefineError, aim, neighbour_edges, place_beams, prediction_residual
+from ilt.refine import (
+    RefineError,
+    aim,
+    neighbour_edges,
+    place_beams,
+    prediction_residual,
+)
 from ilt.refine.indicator import neighbour_lists
 
 

@@ -221,14 +221,14 @@ def _tls_refusal(address: str, exc: BaseException) -> str | None:
     while exc is not None and exc not in chain:
         chain.append(exc)
         exc = exc.__cause__ or exc.__context__
-    if any(isinstance(e, ssl.SSLCertVerificationError) for e in chain):
-        reason = _ssl_words(next(e for e in chain if isinstance(e, ssl.SSLCertVerificationError)))
-        return (f"{address}: the scheduler's certificate is not signed by this client's CA ({reason}): ca must be "
-                "the certificate authority of the cluster's certificates (docs/cluster.md)")
+    unverified = next((e for e in chain if isinstance(e, ssl.SSLCertVerificationError)), None)
+    if unverified is not None:
+        return (f"{address}: the scheduler's certificate is not signed by this client's CA ({_ssl_words(unverified)}): "
+                "ca must be the certificate authority of the cluster's certificates (docs/cluster.md)")
     refused = next((e for e in chain if isinstance(e, ssl.SSLError)), None)
     if refused is None and isinstance(chain[0], CommClosedError):   # closed during the handshake
         refused = chain[0]
-    if refused is None:
+    if refused is None:   # (a timeout: nothing answered)
         return None
     return (f"{address}: the scheduler refused this client's certificate ({_ssl_words(refused)}): cert must be "
             "signed by the certificate authority the scheduler was started with (its --tls-ca-file; "

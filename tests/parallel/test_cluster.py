@@ -193,15 +193,15 @@ def dask_processes(log_dir: Path, workers: dict[str, list[str]], preload: Path |
             client.wait_for_workers(len(workers), timeout=30)
         yield address, procs
     finally:
-        for p in procs.values():
+        # the workers first: one whose scheduler is gone waits for it before it stops
+        for p in reversed(procs.values()):
             if p.poll() is None:
                 p.terminate()
-        for p in procs.values():
-            try:
-                p.wait(3)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+                try:
+                    p.wait(3)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
         log.close()
 
 

@@ -6,14 +6,7 @@ import time
 
 import click
 
-from ilt.cli.options import (
-    cluster_options,
-    emit,
-    json_option,
-    note,
-    progress_bar,
-    workspace_option,
-)
+from ilt.cli.options import cluster_options, emit, json_option, note, progress_bar, workspace_option
 
 
 @click.command("run")

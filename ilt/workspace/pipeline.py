@@ -39,13 +39,7 @@ import numpy as np
 from ilt.capture.config import ConfigError, RigConfig, parse_config
 from ilt.capture.loop import capture
 from ilt.io.atomic import atomic_path
-from ilt.io.manifest import (
-    LOG_NAME,
-    MANIFEST,
-    StageError,
-    fingerprint_file,
-    write_manifest,
-)
+from ilt.io.manifest import LOG_NAME, MANIFEST, StageError, fingerprint_file, write_manifest
 from ilt.io.stage import (
     DONE,
     MISSING,

@@ -6,12 +6,12 @@ import click
 
 from ilt.cli.centroids import _count
 from ilt.cli.options import (
+    cluster_options,
     emit,
     force_option,
     json_option,
     progress_bar,
     require_dir,
-    scheduler_option,
     stage_option,
     stage_output_option,
     workers_option,
@@ -39,12 +39,12 @@ from ilt.workspace.options import BUILD_ISF
 @stage_option(BUILD_ISF["no_fine"], help="Do not build fine/: 'ilt decompose' then splits photos at the "
                                         "m samples only.")
 @workers_option
-@scheduler_option
+@cluster_options
 @workspace_option
 @force_option
 @json_option
 def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, max_cell_radius, fine_degree,
-            no_fine, workers, scheduler, workspace, force, as_json):
+            no_fine, workers, cluster, workspace, force, as_json):
     """Build the ISF directory (-o, default WORKSPACE/isf) from the beam frames in HDR_DIR
     and the spots in SPOTS_DIR (from 'ilt centroids').
 
@@ -64,7 +64,7 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
     require_dir(hdr_dir, "the HDR frames", "run 'ilt merge' first, or give HDR_DIR")
     require_dir(spots_dir, "the spots", "run 'ilt centroids' first, or give SPOTS_DIR")
 
-    with executor_for(scheduler, workers) as executor, progress_bar(_count(hdr_dir), "build-isf") as update:
+    with executor_for(cluster, workers) as executor, progress_bar(_count(hdr_dir), "build-isf") as update:
         summary = build_isf(hdr_dir, spots_dir, output, sampling=sampling, min_separation=min_separation,
                             lit_fraction=lit_fraction, max_cell_radius=max_cell_radius, executor=executor,
                             workers=workers,

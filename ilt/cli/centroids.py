@@ -5,12 +5,12 @@ from __future__ import annotations
 import click
 
 from ilt.cli.options import (
+    cluster_options,
     emit,
     force_option,
     json_option,
     progress_bar,
     require_dir,
-    scheduler_option,
     stage_option,
     stage_output_option,
     workers_option,
@@ -38,12 +38,12 @@ from ilt.workspace.options import CENTROIDS
 @stage_option(CENTROIDS["roi"], help="Region of interest x0,y0,x1,y1 in full-frame sensor pixels.")
 @stage_option(CENTROIDS["refine"], help="Refine each centroid with a 2D Gaussian fit.")
 @workers_option
-@scheduler_option
+@cluster_options
 @workspace_option
 @force_option
 @json_option
 def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongation, large_factor, max_area,
-            saturation, roi, refine, workers, scheduler, workspace, force, as_json):
+            saturation, roi, refine, workers, cluster, workspace, force, as_json):
     """Find the laser spot of every beam frame in HDR_DIR (one EXR per beam, sorted by
     name, optional manifest.json with the plan's layout), or of every beam of a capture
     directory at its shortest exposure, less its dark frame (the paper's choice).
@@ -71,7 +71,7 @@ def command(hdr_dir, output, dark, threshold, min_snr, max_second, max_elongatio
                             max_elongation=max_elongation, large_factor=large_factor, max_area=max_area,
                             saturation=saturation, roi=roi, refine=refine)
 
-    with executor_for(scheduler, workers) as executor, progress_bar(_count(hdr_dir), "centroids") as update:
+    with executor_for(cluster, workers) as executor, progress_bar(_count(hdr_dir), "centroids") as update:
         summary = run_centroids(hdr_dir, output, params, dark=dark, executor=executor, workers=workers,
                                 progress=update, force=force)
     emit(as_json, summary, [summary["output"]])

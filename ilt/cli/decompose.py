@@ -8,10 +8,10 @@ import click
 
 from ilt.cli.options import (
     bounces_option,
+    cluster_options_for,
     emit,
     force_option,
     json_option,
-    scheduler_option_for,
     stage_option,
     stage_output_option,
     workspace_option,
@@ -48,13 +48,13 @@ from ilt.workspace.options import DECOMPOSE
 @stage_option(DECOMPOSE["samples_only"],
               help="Split the photo at the m samples only: skip the full-resolution bounce images "
                    "(the ISF's fine/ operator).")
-@scheduler_option_for("the compression of T's blocks, with the compressed solver (T.npy on storage every "
-                      "worker sees; the other solvers, the photos and the outputs stay on this machine)")
+@cluster_options_for("the compression of T's blocks, with the compressed solver (T.npy on storage every "
+                     "worker sees; the other solvers, the photos and the outputs stay on this machine)")
 @workspace_option
 @force_option
 @json_option
 def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solver, noise, regularise, samples_only,
-            scheduler, workspace, force, as_json):
+            cluster, workspace, force, as_json):
     """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
 
     INPUT is an EXR photo on the grid of the beam frames (integrated over the ISF's
@@ -76,7 +76,7 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
     isf_path, output = workspace.resolve(isf_path, "build-isf"), workspace.resolve(output, "decompose")
     isf = load_isf(isf_path, mmap=True)  # T is never held twice: solvers copy or read it as they need
     cache = None if no_cache else (Path(cache_dir) if cache_dir else default_cache_dir())
-    with executor_for(scheduler) as executor:
+    with executor_for(cluster) as executor:
         summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache,
                               force=force, solver=solver, noise=noise, regularise=regularise,
                               samples_only=samples_only, executor=executor)

@@ -5,12 +5,12 @@ from __future__ import annotations
 import click
 
 from ilt.cli.options import (
+    cluster_options,
     emit,
     force_option,
     json_option,
     progress_bar,
     require_dir,
-    scheduler_option,
     stage_option,
     workers_option,
     workspace_option,
@@ -41,12 +41,12 @@ from ilt.workspace.options import MERGE
               help="Lossless EXR compression; zip:1 is deflate at its fastest level "
                    "(noisy float data compresses little more at higher levels).")
 @workers_option
-@scheduler_option
+@cluster_options
 @workspace_option
 @force_option
 @json_option
 def command(inputs, output, bracket, times, dark, response_path, gain, read_noise, margin, color,
-            compression, workers, scheduler, workspace, force, as_json):
+            compression, workers, cluster, workspace, force, as_json):
     """Merge each beam's RAW bracket of CAPTURE_DIR (default WORKSPACE/capture) into
     beam-NNNNN.exr of the HDR directory -o (default WORKSPACE/hdr).
 
@@ -81,7 +81,7 @@ def command(inputs, output, bracket, times, dark, response_path, gain, read_nois
         from ilt.parallel.cluster import executor_for
 
         beams = len(list_beams(inputs[0]))
-        with executor_for(scheduler, workers) as executor, progress_bar(beams, "merge") as update:
+        with executor_for(cluster, workers) as executor, progress_bar(beams, "merge") as update:
             path, summary = merge_capture(inputs[0], output, options, executor=executor, workers=workers,
                                           force=force, parameters=params, progress=update)
     emit(as_json, summary, [str(path)])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import sys
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from ilt.parallel.cluster import ClusterConfig
 from ilt.workspace.options import BOUNCES, MAX_BOUNCES, WORKERS, StageOption
 
 
@@ -40,22 +42,48 @@ workers_option = stage_option(
 )
 
 
-def scheduler_option_for(work: str):
-    """``--scheduler`` (ilt.parallel.cluster), a runtime option like --workers; ``work``: what
-    runs on the cluster (the help names it)."""
-    return click.option(
+def cluster_options_for(work: str):
+    """``--scheduler``, ``--scheduler-file`` and ``--insecure`` (ilt.parallel.cluster), runtime
+    options like --workers, handed to the command as one ``cluster``, a
+    :class:`ilt.parallel.cluster.ClusterConfig`; ``work``: what runs on the cluster (the help names it)."""
+    scheduler = click.option(
         "--scheduler", "scheduler", default=None, metavar="ADDRESS",
         help=f"Run {work} on a Dask cluster (pip install 'ilt[cluster]'; docs/cluster.md): "
-             "'local' starts a LocalCluster of single-threaded processes on this machine (--workers of them "
-             "where the command has it, else one a core); tcp://HOST:8786 uses the workers of a running "
-             "'dask scheduler' (every worker must see the files at the same path). Default: "
+             "'local' is a LocalCluster of single-threaded processes on this machine's loopback (--workers of them "
+             "where the command has it, else one a core); tls://HOST:8786 a running 'dask scheduler' through TLS "
+             "(certificates: Dask's configuration; ilt run: [cluster] ca, cert, key); tcp://HOST:8786 plain TCP, "
+             "on this machine only unless --insecure. Every worker must see the files at the same path. Default: "
              "$DASK_SCHEDULER_ADDRESS when set, else this machine. No output depends on it; an unreachable "
              "scheduler is an error (10 s).",
     )
+    scheduler_file = click.option(
+        "--scheduler-file", "scheduler_file", default=None, metavar="PATH",
+        type=click.Path(dir_okay=False, path_type=Path),
+        help="The scheduler's address from this JSON file, as 'dask scheduler --scheduler-file PATH' (and "
+             "dask-jobqueue's) writes it; waited for up to 10 s. Instead of --scheduler.",
+    )
+    insecure = click.option(
+        "--insecure", is_flag=True,
+        help="Allow a plain tcp:// scheduler on another machine: the network is trusted (whoever can reach a "
+             "scheduler's port runs code as its user; docs/cluster.md).",
+    )
+
+    def decorate(command):
+        @functools.wraps(command)
+        def with_cluster(*args, scheduler, scheduler_file, insecure, **kwargs):
+            if scheduler and scheduler_file:
+                raise click.UsageError("give --scheduler or --scheduler-file, not both")
+            return command(*args, cluster=ClusterConfig(scheduler, scheduler_file, insecure=insecure), **kwargs)
+
+        for option in (insecure, scheduler_file, scheduler):   # (click lists them bottom-up)
+            with_cluster = option(with_cluster)
+        return with_cluster
+
+    return decorate
 
 
-#: ``--scheduler`` of the per-beam stages
-scheduler_option = scheduler_option_for("the per-beam work")
+#: the cluster options of the per-beam stages
+cluster_options = cluster_options_for("the per-beam work")
 
 
 class MissingInput(ValueError):

@@ -6,16 +6,16 @@ import time
 
 import click
 
-from ilt.cli.options import emit, json_option, note, progress_bar, scheduler_option, workspace_option
+from ilt.cli.options import cluster_options, emit, json_option, note, progress_bar, workspace_option
 
 
 @click.command("run")
 @click.argument("config", required=False, type=click.Path(dir_okay=False))
 @workspace_option
 @click.option("--force", is_flag=True, help="Re-run every stage (a previous scan is moved aside, never deleted).")
-@scheduler_option
+@cluster_options
 @json_option
-def command(config, workspace, force, scheduler, as_json):
+def command(config, workspace, force, cluster, as_json):
     """Capture, merge, centroids, build-isf, photos and decompose for CONFIG (a rig
     TOML, default WORKSPACE/rig.toml) in the workspace, like make: a stage whose
     parameters and inputs have not changed since it ran is skipped; a changed one
@@ -30,9 +30,10 @@ def command(config, workspace, force, scheduler, as_json):
     its manifest (`ilt status --verify` lists them all). Stages made by hand (ilt
     merge, centroids, build-isf) with the config's parameters count as done.
 
-    --scheduler (else the config's [cluster] scheduler, else $DASK_SCHEDULER_ADDRESS)
-    runs merge, centroids and build-isf on a Dask cluster (docs/cluster.md); the stages'
-    files are the same, and a stage done on one is up to date on the other.
+    --scheduler or --scheduler-file (else the config's [cluster] scheduler or
+    scheduler-file, else $DASK_SCHEDULER_ADDRESS) runs merge, centroids and build-isf on a
+    Dask cluster, through TLS with the [cluster] ca, cert and key (docs/cluster.md); the
+    stages' files are the same, and a stage done on one is up to date on the other.
 
     Prints the workspace's stage directories; `ilt status` says what is up to date.
     """
@@ -42,7 +43,7 @@ def command(config, workspace, force, scheduler, as_json):
     start = time.monotonic()
     cfg = workspace_config(workspace, config)
     # connected before anything is written: an unreachable scheduler leaves no workspace
-    with executor_for(scheduler or cfg.scheduler) as executor:
+    with executor_for(cluster.over(cfg.cluster)) as executor:
         summaries = run_pipeline(workspace, cfg, force=force, progress=progress_bar, executor=executor)
     ran = [s["stage"] for s in summaries if s["ran"]]
     note(f"ilt: run: {'ran ' + ', '.join(ran) if ran else 'every stage was up to date'} "

@@ -12,7 +12,7 @@ __getattr__, __dir__, __all__ = lazy_face(
     __name__,
     {
         "chunks": ["WorkerError", "beam_executor", "chunks", "run_chunks"],
-        "cluster": ["ClusterExecutor", "WorkerOSError", "executor_for"],
+        "cluster": ["ClusterConfig", "ClusterExecutor", "WorkerOSError", "executor_for"],
         "memory": ["available_memory"],
         "pool": ["process_pool"],
     },

@@ -14,16 +14,30 @@ every stage file but the merged EXRs, written by the merge workers into the stag
 output directory: the workspace (capture/, hdr/, the frame scratch of ``ilt run``)
 must be on storage every worker sees at the same path. The scheduler is a runtime
 option like ``--workers``: no stage fingerprint or parameter depends on it.
+
+A scheduler runs the pickled functions of any client that reaches its port, so
+:func:`executor_for` reaches one only where that is safe (:class:`ClusterConfig`): a
+``tls://`` scheduler with this client's certificates (:func:`_security`), a plain
+``tcp://`` one on this machine's loopback, or another machine's when ``insecure`` says
+the network is trusted; ``local`` listens on loopback only.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import ipaddress
+import json
 import logging
 import os
+import re
+import ssl
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+from urllib.parse import urlsplit
 
 log = logging.getLogger(__name__)
 
@@ -31,8 +45,45 @@ log = logging.getLogger(__name__)
 ENV = "DASK_SCHEDULER_ADDRESS"
 #: ``--scheduler local``: a LocalCluster on this machine
 LOCAL = "local"
-#: seconds to wait for the scheduler before giving up
+#: seconds to wait for the scheduler (and its --scheduler-file) before giving up
 CONNECT_TIMEOUT = 10.0
+#: the schemes whose connections are encrypted and authenticated by certificates
+TLS_SCHEMES = ("tls", "wss")
+#: a client's TLS files: the ClusterConfig field, the Security attribute, Dask's configuration key
+TLS_FILES = (("ca", "tls_ca_file", "distributed.comm.tls.ca-file"),
+             ("cert", "tls_client_cert", "distributed.comm.tls.client.cert"),
+             ("key", "tls_client_key", "distributed.comm.tls.client.key"))
+
+
+@dataclass(frozen=True)
+class ClusterConfig:
+    """Where the stages run and how this client reaches the scheduler safely: the command
+    line's ``--scheduler``, ``--scheduler-file`` and ``--insecure``, over the ``[cluster]``
+    table of ``ilt run``'s rig TOML (read by :mod:`ilt.workspace.pipeline`; paths resolved).
+
+    ``ca``, ``cert``, ``key``: PEM files of the cluster's certificate authority and of
+    this client's certificate and private key, for a ``tls://`` scheduler; one not given
+    is Dask's configuration's (``distributed.comm.tls.*``). ``insecure``: a plain
+    ``tcp://`` scheduler on another machine is allowed (the network is trusted).
+    ``origin``: where ``ca``, ``cert`` and ``key`` were given, named in errors
+    (``rig.toml: [cluster]``)."""
+
+    scheduler: str | None = None
+    #: a JSON file with the scheduler's "address" ('dask scheduler --scheduler-file PATH')
+    scheduler_file: Path | None = None
+    ca: Path | None = None
+    cert: Path | None = None
+    key: Path | None = None
+    insecure: bool = False
+    origin: str = "[cluster]"
+
+    def over(self, config: ClusterConfig) -> ClusterConfig:
+        """These settings (the command line's) over ``config`` (a rig TOML's): this
+        scheduler or scheduler file when one is given, else ``config``'s; insecure when
+        either says so; ``config``'s TLS files."""
+        chosen = self if self.scheduler or self.scheduler_file else config
+        return replace(config, scheduler=chosen.scheduler, scheduler_file=chosen.scheduler_file,
+                       insecure=self.insecure or config.insecure)
 
 
 class ClusterError(ConnectionError):
@@ -64,6 +115,124 @@ def scheduler_address(scheduler: str | None) -> str | None:
     """``scheduler`` when given, else ``$DASK_SCHEDULER_ADDRESS`` when set, else None."""
     scheduler = (scheduler or "").strip() or os.environ.get(ENV, "").strip()
     return scheduler or None
+
+
+def read_scheduler_file(path: Path) -> str:
+    """The "address" of a scheduler file, as ``dask scheduler --scheduler-file PATH``
+    (dask-jobqueue's and dask-mpi's schedulers too) writes it once it listens: waited for
+    up to :data:`CONNECT_TIMEOUT` seconds, so that a batch job can start the scheduler
+    and ilt together. :class:`ClusterError` naming the file."""
+    deadline = time.monotonic() + CONNECT_TIMEOUT
+    while True:
+        try:
+            address = json.loads(path.read_text())["address"]
+            if isinstance(address, str) and address.strip():
+                return address.strip()
+            problem = "not a Dask scheduler file (JSON with the scheduler's \"address\")"
+        except FileNotFoundError:
+            problem = (f"no scheduler file within {CONNECT_TIMEOUT:g} s ('dask scheduler --scheduler-file {path}' "
+                       "writes it once the scheduler listens)")
+        except (ValueError, KeyError, TypeError):  # (or not yet written out)
+            problem = "not a Dask scheduler file (JSON with the scheduler's \"address\")"
+        except OSError as exc:
+            raise ClusterError(f"{path}: {exc.strerror or exc} (the --scheduler-file)") from None
+        if time.monotonic() >= deadline:
+            raise ClusterError(f"{path}: {problem}")
+        time.sleep(0.1)
+
+
+def refuse_plain_tcp_off_this_machine(address: str, insecure: bool) -> None:
+    """:class:`ClusterError` for a scheduler address whose connections are neither
+    encrypted (``tls://``) nor on this machine's loopback, unless ``insecure``: anyone who
+    can reach such a scheduler's port can run code as the user it runs as. Looks at the
+    address alone (no name is resolved, nothing connected)."""
+    parts = urlsplit(address)
+    if parts.scheme in TLS_SCHEMES or insecure or _loopback(parts.hostname or ""):
+        return
+    raise ClusterError(
+        f"{address}: refused: a plain {parts.scheme}:// scheduler off this machine runs the code of anyone who can "
+        "reach its port; use a tls:// scheduler (certificates: [cluster] ca, cert, key, or Dask's "
+        "distributed.comm.tls.*; docs/cluster.md), or --insecure / [cluster] insecure = true if only trusted "
+        "users can reach that network")
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:   # a host name: another machine, as far as the address says
+        return False
+
+
+def _security(address: str, cluster: ClusterConfig):
+    """The ``distributed.security.Security`` of this client for a ``tls://`` (``wss://``)
+    scheduler, None for a plain one: ``cluster``'s ca, cert and key where given, else
+    Dask's configuration's. Checked before any connection: :class:`ClusterError` in one
+    line naming the address, or the file and where it was given, when the CA or the
+    certificate is missing, a file is not there or not a certificate (and its key), or
+    the private key is open to other users."""
+    if urlsplit(address).scheme not in TLS_SCHEMES:
+        return None
+    from distributed.security import Security
+
+    given = {attr: str(getattr(cluster, name)) for name, attr, _ in TLS_FILES if getattr(cluster, name) is not None}
+    security = Security(require_encryption=True, **given)
+    files = {name: (getattr(security, attr), f"{cluster.origin} {name}" if attr in given else f"Dask's {key}")
+             for name, attr, key in TLS_FILES}
+    missing = [what for name, what in (("ca", "no CA certificate (ca)"), ("cert", "no client certificate (cert)"))
+               if not files[name][0]]
+    if missing:
+        raise ClusterError(f"{address}: {' and '.join(missing)} for this TLS scheduler: set [cluster] ca, cert and key "
+                           "in ilt run's rig TOML, or Dask's distributed.comm.tls.ca-file, .client.cert and "
+                           ".client.key (docs/cluster.md)")
+    on_disk = {name: (value, source) for name, (value, source) in files.items() if value and "\n" not in value}
+    for value, source in on_disk.values():   # (Dask's configuration may hold the PEM text itself)
+        if not os.path.isfile(value):
+            raise ClusterError(f"{source} = {value}: no such file (TLS for {address})")
+    try:
+        security.get_connection_args("client")
+    except (ssl.SSLError, OSError) as exc:
+        named = ", ".join(f"{name} = {value}" for name, (value, _) in files.items() if value)
+        raise ClusterError(f"{address}: {named}: not the CA's certificate, this client's certificate and its "
+                           f"private key in PEM ({_ssl_words(exc)})") from None
+    # the private key: the key file, else the certificate's (the key appended to it)
+    value, source = on_disk.get("key") or on_disk.get("cert") or (None, "")
+    if value is not None and (mode := os.stat(value).st_mode & 0o777) & 0o077:
+        raise ClusterError(f"{source} = {value}: the private key is open to other users (mode {mode:04o}), who could "
+                           f"join the cluster with it: chmod 600 {value}")
+    return security
+
+
+def _ssl_words(exc: BaseException) -> str:
+    """OpenSSL's words for ``exc`` (``certificate verify failed: self-signed certificate``),
+    without its codes and source lines."""
+    text = re.sub(r"^in <[^>]*>: ", "", str(exc))   # (distributed's CommClosedError: the connection)
+    text = re.sub(r"^\w+Error: |\[SSL(: \w+)?\] |\s*\(_ssl\.c:\d+\)", "", text)
+    return text.strip() or type(exc).__name__
+
+
+def _tls_refusal(address: str, exc: BaseException) -> str | None:
+    """The one line for a connection to a TLS scheduler refused by either side's
+    certificates, None when ``exc`` is no such refusal (no scheduler answered)."""
+    from distributed.comm.core import CommClosedError
+
+    chain = []
+    while exc is not None and exc not in chain:
+        chain.append(exc)
+        exc = exc.__cause__ or exc.__context__
+    unverified = next((e for e in chain if isinstance(e, ssl.SSLCertVerificationError)), None)
+    if unverified is not None:
+        return (f"{address}: the scheduler's certificate is not signed by this client's CA ({_ssl_words(unverified)}): "
+                "ca must be the certificate authority of the cluster's certificates (docs/cluster.md)")
+    refused = next((e for e in chain if isinstance(e, ssl.SSLError)), None)
+    if refused is None and isinstance(chain[0], CommClosedError):   # closed during the handshake
+        refused = chain[0]
+    if refused is None:   # (a timeout: nothing answered)
+        return None
+    return (f"{address}: the scheduler refused this client's certificate ({_ssl_words(refused)}): cert must be "
+            "signed by the certificate authority the scheduler was started with (its --tls-ca-file; "
+            "docs/cluster.md)")
 
 
 class ClusterExecutor(cf.Executor):
@@ -254,18 +423,26 @@ def _one_thread_plugin():
 
 
 @contextmanager
-def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[cf.Executor | None]:
-    """The executor of the per-beam stages for ``scheduler``.
+def executor_for(cluster: ClusterConfig | str | None = None,
+                 workers: int | None = None) -> Iterator[cf.Executor | None]:
+    """The executor of the per-beam stages for ``cluster`` (a bare address or None: its
+    ``scheduler`` alone).
 
-    None (and ``$DASK_SCHEDULER_ADDRESS`` unset): yields None, the stages' own process
-    pool, without importing Dask. ``"local"``: a ``distributed.LocalCluster`` on this
-    machine, ``workers`` (default: every core) single-threaded worker processes, closed
-    at the end. An address (``tcp://host:8786``): a Client of that scheduler's workers,
-    closed at the end (the cluster keeps running). :class:`ClusterError` when the
-    scheduler does not answer within :data:`CONNECT_TIMEOUT` seconds; nothing has been
-    written then. The dashboard's address is logged at INFO.
+    No scheduler or scheduler file (and ``$DASK_SCHEDULER_ADDRESS`` unset): yields None,
+    the stages' own process pool, without importing Dask. ``"local"``: a
+    ``distributed.LocalCluster`` on this machine's loopback, ``workers`` (default: every
+    core) single-threaded worker processes, closed at the end. An address
+    (``tls://host:8786``; ``host:8786`` is ``tcp://``) or the one in ``scheduler_file``: a
+    Client of that scheduler's workers, closed at the end (the cluster keeps running),
+    through TLS (:func:`_security`) or plain TCP where that is allowed
+    (:func:`refuse_plain_tcp_off_this_machine`). :class:`ClusterError` when it is not
+    allowed, the certificates are missing or refused, or the scheduler does not answer
+    within :data:`CONNECT_TIMEOUT` seconds; nothing has been written then. The
+    dashboard's address is logged at INFO.
     """
-    address = scheduler_address(scheduler)
+    if not isinstance(cluster, ClusterConfig):
+        cluster = ClusterConfig(scheduler=cluster)
+    address = scheduler_address(cluster.scheduler) if cluster.scheduler_file is None else str(cluster.scheduler_file)
     if address is None:
         yield None
         return
@@ -274,22 +451,29 @@ def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[
     except ImportError:
         raise ClusterError(f"{address}: the scheduler needs dask.distributed: pip install 'ilt[cluster]'") from None
     _quiet_dask()
-    cluster = executor = None
+    local = executor = None
+    if cluster.scheduler_file is not None:
+        address = read_scheduler_file(cluster.scheduler_file)
     if address == LOCAL:
         n = workers or os.cpu_count() or 1
-        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                           dashboard_address=":0", silence_logs=logging.CRITICAL)
-        client = distributed.Client(cluster)
+        # every server of it (scheduler, nannies, workers, dashboard) on loopback: a
+        # worker too runs the functions it is sent
+        local = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                         dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL)
+        client = distributed.Client(local)
         where = f"a LocalCluster of {n} worker processes"
     else:
         if "://" not in address:
             address = f"tcp://{address}"
+        refuse_plain_tcp_off_this_machine(address, cluster.insecure)
+        security = _security(address, cluster)
         try:
-            client = distributed.Client(address, timeout=CONNECT_TIMEOUT)
+            client = distributed.Client(address, timeout=CONNECT_TIMEOUT, security=security)
         except (OSError, TimeoutError) as exc:
-            raise ClusterError(f"{address}: no Dask scheduler answered within {CONNECT_TIMEOUT:g} s "
-                               f"({type(exc).__name__}); start one with 'dask scheduler', or check "
-                               f"--scheduler / [cluster] scheduler / ${ENV}") from None
+            refusal = _tls_refusal(address, exc) if security is not None else None
+            raise ClusterError(refusal or f"{address}: no Dask scheduler answered within {CONNECT_TIMEOUT:g} s "
+                                          f"({type(exc).__name__}); start one with 'dask scheduler', or check "
+                                          f"--scheduler / [cluster] scheduler / ${ENV}") from None
         where = f"the Dask scheduler at {address}"
     try:
         client.register_plugin(_one_thread_plugin())
@@ -298,7 +482,7 @@ def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[
         log.info("tasks run on %s (%d workers)%s", where, n, f"; dashboard {dashboard}" if dashboard else "")
         if n == 0:
             log.warning("%s has no workers yet: the stages wait for some ('dask worker %s')", address, address)
-        executor = ClusterExecutor(client, address=client.scheduler.address if cluster is not None else address)
+        executor = ClusterExecutor(client, address=client.scheduler.address if local is not None else address)
         yield executor
     finally:
         quiet = executor is not None and executor.scheduler_lost and not logging.getLogger().isEnabledFor(logging.DEBUG)
@@ -311,9 +495,9 @@ def executor_for(scheduler: str | None, workers: int | None = None) -> Iterator[
         finally:
             if quiet:
                 logging.disable(logging.NOTSET)
-        if cluster is not None:
+        if local is not None:
             try:
-                cluster.close()
+                local.close()
             except AssertionError as exc:
                 # distributed's nanny cannot kill a worker it is restarting (after a worker
                 # died: "can only join a started process"); that worker ends with this

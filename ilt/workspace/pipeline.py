@@ -12,7 +12,10 @@ keys are the long options of the stage commands (:mod:`ilt.workspace.options`, d
     [photos]     sim = ["flashlight"] # simulated rig: photos under these illuminations
                  files = ["a.exr"]    # and/or EXR photos (paths relative to the config)
     [decompose]  bounces = 8          # ilt decompose --bounces
-    [cluster]    scheduler = "tcp://head:8786"  # ilt run --scheduler (docs/cluster.md)
+    [cluster]    scheduler = "tls://head:8786"  # ilt run --scheduler (docs/cluster.md)
+                 ca = "~/.dask/ca.pem"          # TLS: the cluster's CA, this client's
+                 cert = "~/.dask/cert.pem"      # certificate and key (or Dask's
+                 key = "~/.dask/key.pem"        # distributed.comm.tls configuration)
 
 Photos on the simulated rig are *captured*: the simulated camera shoots each photo's
 bracket of DNG files under the illumination (same bracket, sensor and noise as the
@@ -52,6 +55,7 @@ from ilt.io.stage import (
 )
 from ilt.io.staged import staged_directory
 from ilt.io.workspace_dirs import STAGE_DIRS, Workspace
+from ilt.parallel.cluster import ClusterConfig
 from ilt.workspace.options import BUILD_ISF, CENTROIDS, DECOMPOSE, MERGE, StageOption
 
 log = logging.getLogger(__name__)
@@ -74,8 +78,8 @@ class RunConfig:
     decompose: dict = field(default_factory=dict)
     photo_kinds: tuple[str, ...] = ()
     photo_files: tuple[Path, ...] = ()
-    #: [cluster] scheduler: where the per-beam stages run (ilt.parallel.cluster); None: here
-    scheduler: str | None = None
+    #: [cluster]: where the per-beam stages run and how to reach it (ilt.parallel.cluster)
+    cluster: ClusterConfig = field(default_factory=ClusterConfig)
 
 
 def stage_options(options: dict[str, StageOption], section: dict, where: str) -> dict:
@@ -128,21 +132,39 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
         decompose=stage_options(DECOMPOSE, raw.get("decompose", {}), f"{path}: [decompose]"),
         photo_kinds=kinds,
         photo_files=tuple(path.parent / f for f in photos.get("files", ())),
-        scheduler=_cluster_scheduler(raw.get("cluster", {}), f"{path}: [cluster]"),
+        cluster=_cluster(raw.get("cluster", {}), path),
     )
 
 
-def _cluster_scheduler(section, where: str) -> str | None:
-    """The [cluster] table: ``scheduler = "local" | "tcp://host:port"`` (a runtime
-    option: no stage's parameters depend on it)."""
+#: the [cluster] keys naming files, relative to the config (``~`` expanded)
+CLUSTER_FILES = ("scheduler-file", "ca", "cert", "key")
+
+
+def _cluster(section, path: Path) -> ClusterConfig:
+    """The [cluster] table (runtime settings: no stage's parameters depend on them):
+    ``scheduler = "local" | "tls://host:port" | "tcp://host:port"`` or ``scheduler-file``;
+    ``ca``, ``cert``, ``key`` (TLS); ``insecure = true`` (plain TCP to another machine).
+    Whether the files are there and the key private is checked when they are used
+    (:func:`ilt.parallel.cluster.executor_for`)."""
+    where = f"{path}: [cluster]"
     if not isinstance(section, dict):
         raise ConfigError(f"{where}: must be a table")
-    if unknown := set(section) - {"scheduler"}:
-        raise ConfigError(f"{where}: unknown key {min(unknown)!r} (known: scheduler)")
+    known = ("scheduler", *CLUSTER_FILES, "insecure")
+    if unknown := set(section) - set(known):
+        raise ConfigError(f"{where}: unknown key {min(unknown)!r} (known: {', '.join(sorted(known))})")
+    for key in ("scheduler", *CLUSTER_FILES):
+        if key in section and (not isinstance(section[key], str) or not section[key].strip()):
+            raise ConfigError(f"{where}: {key} must be " + ('"local" or an address such as "tls://host:8786"'
+                                                            if key == "scheduler" else "a file's path"))
+    if "scheduler" in section and "scheduler-file" in section:
+        raise ConfigError(f"{where}: scheduler and scheduler-file both given; keep one")
+    if not isinstance(section.get("insecure", False), bool):
+        raise ConfigError(f"{where}: insecure must be true or false")
+    files = {key.replace("-", "_"): path.parent / Path(section[key].strip()).expanduser()
+             for key in CLUSTER_FILES if key in section}
     scheduler = section.get("scheduler")
-    if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
-        raise ConfigError(f"{where}: scheduler must be \"local\" or an address such as \"tcp://host:8786\"")
-    return scheduler.strip() if scheduler else None
+    return ClusterConfig(scheduler=scheduler.strip() if scheduler else None, insecure=section.get("insecure", False),
+                         origin=where, **files)
 
 
 def fingerprinted(options: dict) -> dict:

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -68,8 +70,8 @@ def data(tmp_path_factory):
 @pytest.fixture(scope="module")
 def local_cluster():
     """A LocalCluster of 2 single-threaded worker processes; yields its scheduler's address."""
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                                  silence_logs=50) as cluster:
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address="127.0.0.1:0", silence_logs=50) as cluster:
         yield cluster.scheduler_address
 
 
@@ -127,14 +129,29 @@ def test_unreachable_scheduler_is_one_line_and_writes_nothing(data, tmp_path, mo
 
 
 def test_cluster_table_is_checked(tmp_path):
+    """[cluster]: its keys, their types; the files relative to the config; the command
+    line's scheduler over the config's, the config's TLS files kept."""
     from ilt.capture.config import ConfigError
+    from ilt.parallel.cluster import ClusterConfig
     from ilt.workspace.pipeline import load_run_config
 
-    (tmp_path / "a.toml").write_text(RIG + '\n[cluster]\nscheduler = "tcp://head:8786"\n')
-    assert load_run_config(tmp_path / "a.toml").scheduler == "tcp://head:8786"
-    (tmp_path / "b.toml").write_text(RIG + '\n[cluster]\nworkers = 3\n')
-    with pytest.raises(ConfigError, match=r"\[cluster\]: unknown key 'workers'"):
-        load_run_config(tmp_path / "b.toml")
+    (tmp_path / "a.toml").write_text(RIG + '\n[cluster]\nscheduler = "tls://head:8786"\nca = "tls/ca.pem"\n'
+                                     'cert = "/lab/cert.pem"\nkey = "~/key.pem"\n')
+    cluster = load_run_config(tmp_path / "a.toml").cluster
+    assert cluster == ClusterConfig("tls://head:8786", ca=tmp_path / "tls/ca.pem", cert=Path("/lab/cert.pem"),
+                                    key=Path("~/key.pem").expanduser(), origin=f"{tmp_path / 'a.toml'}: [cluster]")
+    assert ClusterConfig(scheduler_file=Path("s.json"), insecure=True).over(cluster) == ClusterConfig(
+        scheduler_file=Path("s.json"), ca=cluster.ca, cert=cluster.cert, key=cluster.key, insecure=True,
+        origin=cluster.origin)
+    assert ClusterConfig().over(cluster) == cluster
+    for i, (table, message) in enumerate([
+            ("workers = 3", r"\[cluster\]: unknown key 'workers' \(known: ca, cert, insecure, key, scheduler, "),
+            ('insecure = "yes"', r"\[cluster\]: insecure must be true or false"),
+            ("ca = 1", r"\[cluster\]: ca must be a file's path"),
+            ('scheduler = "local"\nscheduler-file = "s.json"', r"\[cluster\]: scheduler and scheduler-file both given; keep one")]):
+        (tmp_path / f"{i}.toml").write_text(RIG + f"\n[cluster]\n{table}\n")
+        with pytest.raises(ConfigError, match=rf"^{re.escape(str(tmp_path / f'{i}.toml'))}: {message}"):
+            load_run_config(tmp_path / f"{i}.toml")
 
 
 # ------------------------------------------------------------ a scheduler and workers by hand
@@ -145,36 +162,46 @@ def _dask(*args) -> list[str]:
 
 
 @contextmanager
-def dask_processes(log_dir: Path, workers: dict[str, list[str]], preload: Path | None = None):
+def dask_processes(log_dir: Path, workers: dict[str, list[str]], preload: Path | None = None,
+                   tls: Path | None = None):
     """`dask scheduler` and one `dask worker --nworkers 1 --nthreads 1` process per name
     of ``workers`` (whose value prefixes its command line: e.g. ``unshare -m ...``) on
     127.0.0.1 (no nanny: killing one kills that worker); yields the scheduler's address
-    and the processes by name ("scheduler" and the workers'), stopped at the end."""
+    and the processes by name ("scheduler" and the workers'), stopped at the end. The
+    scheduler writes LOG_DIR/scheduler.json. ``tls``: a directory of cert.pem and key.pem
+    (:func:`make_certificate`), the CA and certificate of the scheduler and every worker:
+    ``--protocol tls``, the address tls://."""
     port = free_port()
-    address = f"tcp://127.0.0.1:{port}"
+    address = f"{'tls' if tls else 'tcp'}://127.0.0.1:{port}"
     log = open(log_dir / "dask.log", "w")
     procs: dict[str, subprocess.Popen] = {}
     extra = ["--preload", str(preload)] if preload else []
+    certificates = ([f"--tls-{flag}={tls / name}" for flag, name in (("ca-file", "cert.pem"), ("cert", "cert.pem"),
+                                                                      ("key", "key.pem"))] if tls else [])
+    security = lab_security(tls) if tls else None
     try:
         procs["scheduler"] = subprocess.Popen(_dask("scheduler", "--host", "127.0.0.1", "--port", str(port),
-                                                    "--no-dashboard"), stdout=log, stderr=log)
+                                                    "--no-dashboard", "--scheduler-file", str(log_dir / "scheduler.json"),
+                                                    *(["--protocol", "tls", *certificates] if tls else [])),
+                                              stdout=log, stderr=log)
         for name, prefix in workers.items():
             procs[name] = subprocess.Popen([*prefix, *_dask("worker", address, "--nworkers", "1", "--nthreads", "1",
-                                                            "--no-nanny", "--no-dashboard", "--name", name, *extra)],
+                                                            "--no-nanny", "--no-dashboard", "--name", name, *extra,
+                                                            *certificates)],
                                            stdout=log, stderr=log)
-        with distributed.Client(address, timeout=30) as client:
+        with distributed.Client(address, timeout=30, security=security) as client:
             client.wait_for_workers(len(workers), timeout=30)
         yield address, procs
     finally:
-        for p in procs.values():
+        # the workers first: one whose scheduler is gone waits for it before it stops
+        for p in reversed(procs.values()):
             if p.poll() is None:
                 p.terminate()
-        for p in procs.values():
-            try:
-                p.wait(3)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+                try:
+                    p.wait(3)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
         log.close()
 
 
@@ -398,6 +425,202 @@ def test_the_scheduler_stopped_mid_merge_is_one_line_and_leaves_nothing(data, tm
     assert took < 60
     assert stdout == ""
     assert list(out.iterdir()) == [], list(out.iterdir())
+
+
+# ------------------------------------------------------------ who can reach the scheduler: TLS, plain TCP, local
+
+
+def make_certificate(directory: Path) -> Path:
+    """cert.pem and key.pem in ``directory``: one self-signed certificate, the CA and the
+    certificate of every member of a cluster, made as docs/cluster.md says."""
+    directory.mkdir(parents=True)
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "365", "-subj",
+                    "/CN=ilt-dask", "-keyout", "key.pem", "-out", "cert.pem"],
+                   cwd=directory, check=True, capture_output=True, timeout=60)
+    return directory
+
+
+def lab_security(directory: Path):
+    """A client's Security with the certificate of ``directory`` (:func:`make_certificate`)."""
+    from distributed.security import Security
+
+    return Security(tls_ca_file=str(directory / "cert.pem"), tls_client_cert=str(directory / "cert.pem"),
+                    tls_client_key=str(directory / "key.pem"), require_encryption=True)
+
+
+def dask_tls(directory: Path | None, ca: Path | None = None) -> dict:
+    """Dask's configuration of a client's TLS files: ``directory``'s certificate and key,
+    ``ca`` (default: the same certificate) as the CA; none for None."""
+    if directory is None:
+        return {}
+    return {"distributed.comm.tls.ca-file": str(ca or directory / "cert.pem"),
+            "distributed.comm.tls.client.cert": str(directory / "cert.pem"),
+            "distributed.comm.tls.client.key": str(directory / "key.pem")}
+
+
+@pytest.fixture(scope="module")
+def certificates(tmp_path_factory):
+    """Two certificates (:func:`make_certificate`): the lab's cluster's, and another's."""
+    if shutil.which("openssl") is None:
+        pytest.skip("no openssl to make a certificate with")
+    root = tmp_path_factory.mktemp("tls")
+    return {"lab": make_certificate(root / "lab"), "other": make_certificate(root / "other")}
+
+
+@pytest.fixture(scope="module")
+def tls_cluster(tmp_path_factory, certificates):
+    """`dask scheduler --protocol tls` and two TLS workers, every one with the lab's
+    certificate; yields its address and its scheduler file."""
+    log_dir = tmp_path_factory.mktemp("dask-tls")
+    with dask_processes(log_dir, {"t0": [], "t1": []}, tls=certificates["lab"]) as (address, _):
+        yield address, log_dir / "scheduler.json"
+
+
+def test_ilt_run_through_tls_with_the_rig_tomls_certificates_equals_the_pool(data, certificates, tls_cluster,
+                                                                            tmp_path):
+    """`ilt run` with [cluster] scheduler-file, ca, cert and key (a captured workspace):
+    merge, centroids and build-isf run on the TLS cluster's workers and write every file
+    of hdr/, spots/ and isf/ byte for byte as the process pool did."""
+    address, scheduler_file = tls_cluster
+    lab = certificates["lab"]
+    (tmp_path / "rig.toml").write_text(RIG + f'\n[cluster]\nscheduler-file = "{scheduler_file}"\n'
+                                       f'ca = "{lab / "cert.pem"}"\ncert = "{lab / "cert.pem"}"\n'
+                                       f'key = "{lab / "key.pem"}"\n')
+    shutil.copytree(data / "capture", tmp_path / "ws" / "capture")
+    result = run("run", tmp_path / "rig.toml", "-w", tmp_path / "ws", "--json")
+    assert [s["stage"] for s in json.loads(result.stdout) if s["ran"]] == ["merge", "centroids", "build-isf"]
+    assert f"tasks run on the Dask scheduler at {address} (2 workers)" in result.stderr
+    for stage in ("hdr", "spots", "isf"):
+        made = {name: h for name, h in hashes(tmp_path / "ws" / stage).items() if name != ".stage.json"}
+        assert made == hashes(data / stage), stage
+
+
+def test_a_stage_through_tls_with_dasks_own_configuration_equals_the_pool(data, certificates, tls_cluster, tmp_path):
+    """`ilt centroids --scheduler tls://...` with the certificates in Dask's configuration
+    (distributed.comm.tls.*, as DASK_DISTRIBUTED__COMM__TLS__* set it): the pool's files."""
+    import dask
+
+    address, _ = tls_cluster
+    with dask.config.set(dask_tls(certificates["lab"])):
+        run("centroids", data / "hdr", "-o", tmp_path / "spots", "--scheduler", address)
+    assert hashes(tmp_path / "spots") == hashes(data / "spots")
+
+
+@pytest.mark.parametrize("client, ca, says", [
+    (None, None, "no CA certificate (ca) and no client certificate (cert) for this TLS scheduler: set [cluster] ca"),
+    ("other", None, "the scheduler's certificate is not signed by this client's CA (certificate verify failed"),
+    ("other", "lab", "the scheduler refused this client's certificate ("),
+], ids=["no certificates", "another cluster's", "another certificate"])
+def test_a_client_without_the_clusters_certificates_is_refused_in_one_line(data, certificates, tls_cluster, tmp_path,
+                                                                          client, ca, says):
+    """No certificates (before any connection), another cluster's (the scheduler's is not
+    signed by its CA), or the lab's CA with another certificate (the scheduler refuses
+    it): exit 1, one line naming the address and what is wrong, nothing written."""
+    import dask
+
+    address, _ = tls_cluster
+    settings = dask_tls(client and certificates[client], ca and certificates[ca] / "cert.pem")
+    with dask.config.set(settings):
+        result = run("merge", data / "capture", "-o", tmp_path / "hdr", "--scheduler", address, ok=False)
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert lines == [lines[0]] and lines[0].startswith(f"ilt: error: {address}: {says}"), result.output
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_rig_tomls_tls_files_are_checked_before_any_connection(certificates, tmp_path, monkeypatch):
+    """[cluster] ca, cert, key: a file not there, a key other users can read, a file that
+    is no certificate: one line naming the config, the key and the file, before any
+    connection; no workspace made."""
+    monkeypatch.setattr(distributed, "Client", lambda *a, **k: pytest.fail("connected"))
+    lab = certificates["lab"]
+    (tmp_path / "open.pem").write_bytes((lab / "key.pem").read_bytes())
+    (tmp_path / "open.pem").chmod(0o644)
+    (tmp_path / "junk.pem").write_text("not a certificate\n")
+    config = tmp_path / "rig.toml"
+    for ca, key, says in [
+            ("missing.pem", "key.pem", f"{config}: [cluster] ca = {tmp_path / 'missing.pem'}: no such file (TLS for "),
+            (lab / "cert.pem", "open.pem", (f"{config}: [cluster] key = {tmp_path / 'open.pem'}: the private key "
+                                            "is open to other users (mode 0644), who could join the cluster with it: "
+                                            "chmod 600 ")),
+            ("junk.pem", lab / "key.pem", f"tls://127.0.0.1:1: ca = {tmp_path / 'junk.pem'}, cert = ")]:
+        config.write_text(RIG + f'\n[cluster]\nscheduler = "tls://127.0.0.1:1"\nca = "{ca}"\n'
+                                f'cert = "{lab / "cert.pem"}"\nkey = "{key}"\n')
+        result = run("run", config, "-w", tmp_path / "ws", ok=False)
+        assert result.exit_code == 1
+        lines = result.output.strip().splitlines()
+        assert lines == [lines[0]] and lines[0].startswith(f"ilt: error: {says}"), result.output
+        assert not (tmp_path / "ws").exists()
+
+
+def test_plain_tcp_off_this_machine_is_refused_before_any_connection(data, tmp_path, monkeypatch):
+    """A tcp:// (or scheme-less) address of another machine, by name or by address: one
+    line saying why and how to use TLS, and no connection tried; --insecure, or [cluster]
+    insecure = true, lets it through. A loopback address goes through as it is."""
+    tried = []
+
+    def no_scheduler(address, **kwargs):
+        tried.append(address)
+        raise OSError(f"Timed out trying to connect to {address}")
+
+    monkeypatch.setattr(distributed, "Client", no_scheduler)
+    for given in ("tcp://10.255.255.1:8786", "head:8786", "tcp://[2001:db8::1]:8786"):
+        address = given if "://" in given else f"tcp://{given}"
+        result = run("merge", data / "capture", "-o", tmp_path / "hdr", "--scheduler", given, ok=False)
+        assert result.exit_code == 1 and tried == []
+        lines = result.output.strip().splitlines()
+        assert lines == [(f"ilt: error: {address}: refused: a plain tcp:// scheduler off this machine runs the code "
+                          "of anyone who can reach its port; use a tls:// scheduler (certificates: [cluster] ca, cert, "
+                          "key, or Dask's distributed.comm.tls.*; docs/cluster.md), or --insecure / [cluster] insecure "
+                          "= true if only trusted users can reach that network")], result.output
+        result = run("merge", data / "capture", "-o", tmp_path / "hdr", "--scheduler", given, "--insecure", ok=False)
+        assert tried == [address] and "no Dask scheduler answered" in result.output
+        tried.clear()
+    (tmp_path / "rig.toml").write_text(RIG + '\n[cluster]\nscheduler = "tcp://10.255.255.1:8786"\ninsecure = true\n')
+    result = run("run", tmp_path / "rig.toml", "-w", tmp_path / "ws", ok=False)
+    assert tried == ["tcp://10.255.255.1:8786"] and "no Dask scheduler answered" in result.output
+    tried.clear()
+    for address in ("tcp://127.0.0.1:1", "tcp://localhost:1", "tcp://[::1]:1"):
+        run("merge", data / "capture", "-o", tmp_path / "hdr", "--scheduler", address, ok=False)
+    assert tried == ["tcp://127.0.0.1:1", "tcp://localhost:1", "tcp://[::1]:1"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.toml"]
+
+
+def test_a_scheduler_file_that_is_missing_or_not_one_is_one_line(data, tmp_path, monkeypatch):
+    import ilt.parallel.cluster
+
+    monkeypatch.setattr(ilt.parallel.cluster, "CONNECT_TIMEOUT", 0.2)
+    (tmp_path / "empty.json").write_text("{}")
+    for name, says in [("none.json", "no scheduler file within 0.2 s ('dask scheduler --scheduler-file "),
+                       ("empty.json", 'not a Dask scheduler file (JSON with the scheduler\'s "address")')]:
+        result = run("centroids", data / "hdr", "-o", tmp_path / "spots", "--scheduler-file", tmp_path / name, ok=False)
+        lines = result.output.strip().splitlines()
+        assert result.exit_code == 1 and lines == [lines[0]], result.output
+        assert lines[0].startswith(f"ilt: error: {tmp_path / name}: {says}"), result.output
+    result = run("centroids", data / "hdr", "--scheduler", "local", "--scheduler-file", "s.json", ok=False)
+    assert result.exit_code == 2 and "give --scheduler or --scheduler-file, not both" in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.json"]
+
+
+def test_scheduler_local_listens_on_loopback_only():
+    """Every port `--scheduler local` opens (the scheduler and its dashboard in this
+    process, the nanny and the worker in theirs) is on 127.0.0.1: a worker, too, runs
+    the functions it is sent."""
+    import psutil
+
+    from ilt.parallel.cluster import executor_for
+
+    def listening() -> set:
+        me = psutil.Process()
+        return {(p.pid, c.laddr) for p in (me, *me.children(recursive=True))
+                for c in p.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN}
+
+    before = listening()
+    with executor_for("local", 1) as ex:
+        opened = listening() - before
+        [worker] = ex.client.run(os.getpid).values()
+    assert {pid for pid, _ in opened} >= {os.getpid(), worker}
+    assert len(opened) >= 4 and {addr.ip for _, addr in opened} == {"127.0.0.1"}, opened
 
 
 # ------------------------------------------------------------ the compressed solver's blocks on the cluster

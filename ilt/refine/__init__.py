@@ -13,6 +13,6 @@ __getattr__, __dir__, __all__ = lazy_face(
     {
         "pointing": ["aim", "check_reach"],
         "indicator": ["Placement", "RefineError", "neighbour_edges", "place_beams", "prediction_residual"],
-        "stage": ["read_targets", "refine"],
+        "stage": ["refine"],
     },
 )

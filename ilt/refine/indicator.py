@@ -154,15 +154,12 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
 
 @dataclass(frozen=True)
 class Placement:
-    """The chosen beams, best first: ``targets`` (K, 2) pixels (x, y), ``gain`` (K,) the
-    indicator's share each removes, ``edges`` (K, 2) the spots (rows of T) between which
-    each lands (the ends of the half it splits are those spots or earlier targets, named by
-    row ``m + n`` for target n); ``before`` / ``after`` the indicator E of the scan and of
-    the scan with the targets added; ``residual`` (m,) each beam's ``r_j``, for reports."""
+    """The chosen beams, best first: ``targets`` (K, 2) pixels (x, y), ``gain`` (K,) what
+    each removes from E^2; ``before`` / ``after`` the indicator E of the scan and of the
+    scan with the targets added; ``residual`` (m,) each beam's ``r_j``, for reports."""
 
     targets: np.ndarray
     gain: np.ndarray
-    edges: np.ndarray
     before: float
     after: float
     residual: np.ndarray
@@ -191,34 +188,31 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
         raise RefineError("the spots have no neighbours at a distance: nothing to refine")
     before = float(np.sqrt(score.sum() / total_weight))
     spacing = float(np.median(edges.length)) / 4 if min_spacing is None else float(min_spacing)
-    points = [tuple(p) for p in samples]
+    points = list(samples)                        # the spots, then the targets as they are placed
     # a max-heap on the gain (score / 2): (-score, tie-break, end a, end b)
     heap = [(-float(s), n, int(a), int(b)) for n, (s, (a, b)) in enumerate(zip(score, edges.pairs)) if s > 0]
     heapq.heapify(heap)
-    tree, placed = cKDTree(samples), []
-    targets, gains, ends = [], [], []
+    tree, targets, gains = cKDTree(samples), [], []
     remaining = float(score.sum())
     tie = len(heap)
     while heap and len(targets) < count:
         neg, _, a, b = heapq.heappop(heap)
         s = -neg
-        mid = (np.asarray(points[a]) + np.asarray(points[b])) / 2
-        half = np.linalg.norm(np.asarray(points[a]) - np.asarray(points[b])) / 2
-        if half < spacing or (covered is not None and not bool(np.asarray(covered(mid[None]))[0])):
+        mid = (points[a] + points[b]) / 2
+        if np.linalg.norm(points[a] - points[b]) / 2 < spacing:
             continue
-        if tree.query(mid)[0] < spacing * (1 - 1e-9) or any(np.hypot(*(mid - q)) < spacing for q in placed):
+        if covered is not None and not bool(np.asarray(covered(mid[None]))[0]):
+            continue
+        if tree.query(mid)[0] < spacing * (1 - 1e-9) or any(np.hypot(*(mid - q)) < spacing for q in targets):
             continue
         n = len(points)
-        points.append(tuple(mid))
-        placed.append(mid)
+        points.append(mid)
         targets.append(mid)
         gains.append(s / 2)
-        ends.append((a, b))
         remaining -= s / 2
         for end in (a, b):
             heapq.heappush(heap, (-s / 4, tie, end, n))
             tie += 1
     after = float(np.sqrt(max(remaining, 0.0) / total_weight))
     return Placement(targets=np.array(targets).reshape(-1, 2), gain=np.array(gains) / total_weight,
-                     edges=np.array(ends, dtype=np.int64).reshape(-1, 2), before=before, after=after,
-                     residual=residual)
+                     before=before, after=after, residual=residual)

@@ -73,8 +73,7 @@ def refine(isf_dir: str | os.PathLike, out: str | os.PathLike, beams: int, captu
         write_json(tmp / JSON_FILE, {**summary, "residual_median": float(np.median(placement.residual)),
                                      "residual_max": float(placement.residual.max())})
         _write_png(tmp / PNG_FILE, isf, placement)
-        inputs = {str(isf_dir / T_FILE): _output_hash(isf_dir, T_FILE),
-                  str(isf_dir / SAMPLES_FILE): _output_hash(isf_dir, SAMPLES_FILE)}
+        inputs = _input_hashes(isf_dir, (T_FILE, SAMPLES_FILE))
         if capture is not None:
             inputs[str(Path(capture) / MANIFEST)] = fingerprint_file(Path(capture) / MANIFEST)
         write_manifest(tmp, "refine", {"beams": beams, "min_spacing": min_spacing}, inputs=inputs,
@@ -82,12 +81,13 @@ def refine(isf_dir: str | os.PathLike, out: str | os.PathLike, beams: int, captu
     return {"output": str(out), **summary}
 
 
-def _output_hash(directory: Path, name: str) -> str:
-    """The file's hash as its stage's manifest recorded it (read again when there is none)."""
+def _input_hashes(directory: Path, names) -> dict[str, str]:
+    """Path -> hash of each file, as the stage's manifest recorded it (read when it has none)."""
     try:
-        return read_manifest(directory)["outputs"][name]
-    except (StageError, KeyError, TypeError):
-        return fingerprint_file(directory / name)
+        recorded = read_manifest(directory).get("outputs", {})
+    except StageError:
+        recorded = {}
+    return {str(directory / n): recorded.get(n) or fingerprint_file(directory / n) for n in names}
 
 
 def _plan_angles(capture: Path, isf) -> tuple[str, np.ndarray, dict | None]:
@@ -132,23 +132,6 @@ def _write_csv(path: Path, placement: Placement, angles: np.ndarray | None) -> N
         for n, ((x, y), gain) in enumerate(zip(placement.targets, placement.gain)):
             w.writerow([repr(float(x)), repr(float(y)),
                         *([repr(float(a)) for a in angles[n]] if angles is not None else []), repr(float(gain))])
-
-
-def read_targets(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
-    """(K, 2) pixels and (K, 2) angles or None from a ``refine.csv``."""
-    path = Path(path)
-    try:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
-    except OSError as exc:
-        raise RefineError(f"{path}: cannot read ({exc.strerror})") from None
-    try:
-        pixels = np.array([[float(r["x"]), float(r["y"])] for r in rows]).reshape(-1, 2)
-        angles = np.array([[float(r["pan"]), float(r["tilt"])] for r in rows]).reshape(-1, 2) \
-            if rows and "pan" in rows[0] else None
-    except (KeyError, TypeError, ValueError):
-        raise RefineError(f"{path}: not an 'x,y[,pan,tilt],gain' table") from None
-    return pixels, angles
 
 
 def _write_png(path: Path, isf, placement: Placement) -> None:

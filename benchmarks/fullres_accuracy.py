@@ -21,8 +21,8 @@ over the covered pixels (coverage.exr > 0). Tables (markdown):
    Frame sizes: M (flatland, 32 rows) px_per_beam = max(8, 768 / m), so the frames are
    785 px wide at m = 48 and 96, 1553 at 192, 3089 at 384 (6161 at 768); box px_per_beam
    16 (m <= 108), 12 (192), 10 (432), 8 (768): ~160 to ~300 px square. Not below 8 on the
-   M: its frames are one row of spots extruded over 32 rows, and build-isf's default
-   --max-cell-radius (2 spot spacings) then leaves the cells shorter than the strip (at
+   M: its frames are one row of spots extruded over 32 rows, and a --max-cell-radius of 2
+   spot spacings (build-isf's default until issue 21) left the cells shorter than the strip (at
    px_per_beam 4, m = 192: 16 of 32 rows, coverage 0.49): the cells catch all of each
    spot but only half of its indirect light, T's indirect part comes out halved and the
    errors jump tenfold, at the sample level too (b1 0.19, b2 0.28 for the room photo;

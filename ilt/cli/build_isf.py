@@ -31,7 +31,8 @@ from ilt.workspace.options import BUILD_ISF
 @stage_option(BUILD_ISF["lit_fraction"], show_default=True,
               help="Pixels whose frame sum is below this fraction of its median at the spots are outside every cell.")
 @stage_option(BUILD_ISF["max_cell_radius"],
-              help="Cells end this many pixels from their spot (default: 2 x the median spot spacing).")
+              help="Cells also end this many frame pixels from their spot (default: no limit; cells end "
+                   "where the scan's light does, above the frames' noise, whatever the spot spacing).")
 @stage_option(BUILD_ISF["fine_degree"], show_default=True,
               help="Also build fine/, the operator of full-resolution bounce images (cell sampling): the "
                    "indirect light of every beam frame as a polynomial of this degree inside each cell, "

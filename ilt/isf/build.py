@@ -203,8 +203,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     run over the same HDR directory kept its decoded frames (:func:`centroids_and_isf`,
     :class:`ilt.io.frames.FrameScratch`); those it recorded are read instead of the EXR
     files, and the frames file is removed once read. The caller removes the directory.
-    ``min_separation`` is in full-frame pixels; ``max_cell_radius`` in
-    frame-grid pixels, by default 2 x the median distance between neighbouring kept spots.
+    ``min_separation`` is in full-frame pixels; ``max_cell_radius`` in frame-grid
+    pixels, by default None: cells end where the lit mask does (:func:`lit_mask`), so
+    their extent follows the scan's light, not the spacing of its spots.
     ``fine_degree`` (cell sampling): also write ``fine/``, the fine operator of
     full-resolution bounce images (:mod:`ilt.isf.fine`), fitted in the same pass over the
     frames; None skips it.
@@ -230,9 +231,15 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     if sampling == "cell":
         frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
         lit, lit_info = (None, None) if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction)
-        if max_cell_radius is None:
-            nn = cKDTree(on_grid).query(on_grid, k=2)[0][:, 1]
-            max_cell_radius = 2.0 * float(np.median(nn))
+        # cells end where the scan's light ends (the lit mask), not at a multiple of the
+        # spot spacing: a denser scan covers at least what a sparser one did (issue 21).
+        # Without the frames' sum there is no lit mask: then 2 spot spacings, as before
+        if lit is None:
+            if max_cell_radius is None:
+                nn = cKDTree(on_grid).query(on_grid, k=2)[0][:, 1]
+                max_cell_radius = 2.0 * float(np.median(nn))
+            log.warning("%s: missing, so no lit mask: every pixel within %.3g px of a spot joins its cell "
+                        "('ilt centroids' writes it)", spots_dir / SUM_FILE, max_cell_radius)
         # the pool idles meanwhile: the queries take its cores
         labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius, threads=workers or -1)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
@@ -367,8 +374,7 @@ def _read_sum(spots_dir: Path, shape, mapping) -> np.ndarray | None:
     from ilt.io.frames import read_frame_with_mapping
 
     path = spots_dir / SUM_FILE
-    if not path.exists():
-        log.warning("%s: missing; every pixel counts as lit", path)
+    if not path.exists():   # build_isf says what it does instead
         return None
     try:
         image, own = read_frame_with_mapping(path, shape)

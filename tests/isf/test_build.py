@@ -407,3 +407,26 @@ def test_frame_scratch_keeps_frames_bit_for_bit_and_trusts_only_its_record(tmp_p
             scratch.read(fd, 9, out)  # past the end of the file
     finally:
         os.close(fd)
+
+
+def test_a_denser_scan_covers_at_least_what_a_sparser_one_did(tmp_path):
+    """Issue 21: cells end where the scan's light ends, not 2 spot spacings out. On a
+    strip 32 rows tall at 6 px between spots, 2 spacings of the 32-beam scan (12 px) left
+    a third of the rows outside every cell while the 16-beam scan (every other spot of the
+    same frames and sum) covered them: the denser scan covered less."""
+    sim, spots, sparse = tmp_path / "sim", tmp_path / "spots", tmp_path / "sparse"
+    run("simulate", "m", "--frames", "--beams", 32, "--px-per-beam", 6, "--spot", 0.1, "-o", sim)
+    run("centroids", sim / "hdr", "-o", spots, "--workers", 1)
+    shutil.copytree(spots, sparse)
+    rows = (spots / "spots.csv").read_text().splitlines()
+    (sparse / "spots.csv").write_text("\n".join(rows[:1] + rows[1::2]) + "\n")
+    covered = {}
+    for name, where in (("dense", spots), ("sparse", sparse)):
+        build_isf(sim / "hdr", where, tmp_path / f"isf-{name}", workers=1, fine_degree=None)
+        covered[name] = load_isf(tmp_path / f"isf-{name}").cells >= 0
+    lit = read_exr(spots / "sum.exr")[0][..., 0] > 0
+    assert (covered["dense"] >= covered["sparse"]).all()
+    assert covered["dense"][lit].mean() > 0.95
+    # and a radius, when asked for, still bounds them
+    build_isf(sim / "hdr", spots, tmp_path / "isf-r", workers=1, fine_degree=None, max_cell_radius=3.0)
+    assert (load_isf(tmp_path / "isf-r").cells >= 0).mean() < 0.5 * covered["dense"].mean()

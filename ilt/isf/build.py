@@ -98,6 +98,8 @@ def select_beams(beams: list[int], spots, min_separation: float) -> tuple[list[i
 #: a pixel is lit when the 3 x 3 mean of the sum of the beam frames is this many times
 #: that mean's noise above zero
 LIT_SIGMAS = 5.0
+#: ... or this many, where 8-connected to such a pixel (:func:`_hysteresis`)
+LIT_LOW_SIGMAS = 2.0
 
 
 def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
@@ -108,7 +110,9 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     at the spot pixels and the sum's 3 x 3 mean there is above ``sigmas`` x that mean's
     noise, measured from its negative values: black-subtracted frames read below zero
     only by noise, the sum of m frames carries the noise of m, and the negative half of
-    zero-mean noise gives its sigma as sqrt(mean(x^2 | x < 0)). Noise-free frames (no
+    zero-mean noise gives its sigma as sqrt(mean(x^2 | x < 0)); pixels down to
+    :data:`LIT_LOW_SIGMAS` join where they touch a lit region (:func:`_hysteresis`), so
+    the faint rim of the scan's light is not let in or out by the noise. Noise-free frames (no
     negatives): the fraction alone, as before. Without the noise test, background pixels
     that only noise lit joined the cells and added their noise to T: on the noisy box
     (benchmarks/bench_coverage.py, 2e4 e- at the brightest spot pixel) the cells covered
@@ -128,8 +132,19 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
         negative = smooth[smooth < 0]
         if negative.size >= 16:
             noise = float(np.sqrt(np.mean(negative**2)))
-            lit &= smooth > sigmas * noise
+            lit &= _hysteresis(smooth, LIT_LOW_SIGMAS * noise, sigmas * noise)
     return lit, {"relative_threshold": relative, "noise_sigma": noise, "noise_threshold": sigmas * noise}
+
+
+def _hysteresis(image: np.ndarray, low: float, high: float) -> np.ndarray:
+    """(H, W) bool: pixels above ``low`` 8-connected to a pixel above ``high`` (as Canny's
+    edges): the lit region's faint rim stays lit whatever the noise does there, where a
+    single threshold at ``high`` let a rim pixel in or out by the noise alone."""
+    from scipy.ndimage import label
+
+    regions, _ = label(image > low, structure=np.ones((3, 3), bool))
+    strong = np.unique(regions[image > high])
+    return np.isin(regions, strong[strong > 0])
 
 
 def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):

@@ -102,9 +102,11 @@ def test_cells_partition_the_lit_pixels():
 def test_the_lit_test_leaves_out_what_only_noise_lights():
     """A frame sum of 64 noisy frames: a lit square of 100 units a pixel over a background of
     zero-mean noise (sigma 1 a frame, 8 for the sum). The 1e-3 fraction alone keeps half
-    the background (its positive noise); the noise test keeps the square and none of the
-    background past the mean's reach, and measures the 3 x 3 mean's noise (8 / 3). Noise-free, the same sum
-    gives the fraction's mask."""
+    the background (its positive noise); the noise test keeps the square and, of the
+    background past the mean's reach, only a rim of noise within 4 px (the 2-sigma
+    hysteresis), and measures the 3 x 3 mean's noise (8 / 3). A faint band (4 sigma of the
+    mean) touching the square is lit (a single 5-sigma cut lit a ninth of it). Noise-free, the
+    same sum gives the fraction's mask."""
     from ilt.isf.build import lit_mask
 
     rng = np.random.default_rng(0)
@@ -112,12 +114,17 @@ def test_the_lit_test_leaves_out_what_only_noise_lights():
     truth[20:60, 20:60] = 100.0
     noisy = truth + rng.normal(0, 8.0, truth.shape)
     spots = np.array([[30.0, 30.0], [50.0, 50.0]])
+    band = 4 * 8.0 / 3.0                 # 4 sigma of the 3 x 3 mean: below the 5 of a lone pixel
+    noisy[20:60, 60:66] += band          # a faint band touching the square
     lit, info = lit_mask(noisy, spots, 1e-3)
     background = truth == 0
+    background[20:60, 60:66] = False
     far = np.ones_like(background)
-    far[19:61, 19:61] = False  # the 3 x 3 mean reaches one pixel past the square's edge
+    far[15:65, 15:71] = False            # the mean's reach past the square and band, and a 4 px rim
     assert (noisy[background] > 1e-3 * 100).mean() > 0.4
     assert lit[22:58, 22:58].all() and not lit[far].any()
+    # the band stays lit (0.90) where a single 5-sigma cut kept a ninth of it
+    assert lit[22:58, 61:65].mean() > 0.85
     assert info["noise_sigma"] == pytest.approx(8.0 / 3.0, rel=0.1)
     clean, info = lit_mask(truth, spots, 1e-3)
     assert np.array_equal(clean, truth > 0.1) and info["noise_sigma"] == 0.0

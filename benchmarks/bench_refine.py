@@ -254,7 +254,7 @@ def main():
     base = {k: int(v) for k, v in (item.split(":") for item in args.base.split(","))}
     rng = np.random.default_rng(0)
     try:
-        for scene in args.scenes.split(","):
+        for scene in filter(None, args.scenes.split(",")):    # --scenes '': the timing only
             bench_scene(root, scene, base[scene], args.electrons, args.random, rng)
         if args.timing_m:
             bench_timing(args.timing_m, root)

@@ -35,9 +35,14 @@ from ilt.isf.cells import integrate, mosaic
 from ilt.isf.directory import ISF
 from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
 from ilt.isf.layout import sample_frame, splat, vector_to_image
+from ilt.isf.noise import NOISE_FILE, read_noise
 from ilt.transport.compressed import grid_points
 from ilt.transport.diagnostics import decomposition_diagnostics, operator_diagnostics
-from ilt.transport.operators import CancellationOperator, bounce_images, cancellation_operator
+from ilt.transport.operators import (
+    CancellationOperator,
+    bounce_images,
+    cancellation_operator,
+)
 from ilt.transport.regularise import regularise_isf
 from ilt.transport.scan import TransportError, scan_isf
 from ilt.transport.solvers import build_operator, choose_solver, estimate_noise
@@ -70,6 +75,7 @@ def load_operator(
     points: np.ndarray | None = None,
     fingerprint: str | None = None,
     executor=None,
+    noise_source: str = "given",
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
@@ -103,7 +109,7 @@ def load_operator(
     measured = estimate_noise(T) if noise is None else noise
     notes = {
         "noise": measured,
-        "noise_source": "given" if noise is not None else
+        "noise_source": noise_source if noise is not None else
         ("measured from negative entries of T" if measured is not None else "unknown (give --noise)"),
     }
     if regularise:
@@ -450,9 +456,13 @@ def decompose(
             raise InputError(str(exc)) from None
         if fine is None:
             log.info("%s", why)
+    noise_source = "given"
+    if noise is None:   # the frames' noise, carried into T by build-isf (ilt.isf.noise), when it measured it
+        noise, noise_source = frames_noise(isf.path)
     try:
         op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
-                                    isf.samples, fingerprint=fingerprint, executor=executor)
+                                    isf.samples, fingerprint=fingerprint, executor=executor,
+                                    noise_source=noise_source)
     except TransportError as exc:
         raise TransportError(f"{isf.path}: {exc}") from None
     for w in op_diag["warnings"]:
@@ -490,6 +500,22 @@ def decompose(
             out.rmdir()
         raise
     return [done.get(p.name) or summaries[p.name] for p in photos]
+
+
+def frames_noise(isf_dir) -> tuple[float | None, str]:
+    """T's noise (RMS, unit columns) as build-isf measured it from the beam frames
+    (``noise.json`` beside T.npy), and where it came from; (None, ...) when it did not."""
+    if isf_dir is None:
+        return None, "given"
+    isf_dir = Path(isf_dir)
+    isf_dir = isf_dir if isf_dir.is_dir() else isf_dir.parent   # an ISF's path is its T.npy
+    try:
+        record = read_noise(isf_dir)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if record is None or not record["entry_sigma"] > 0:
+        return None, "given"
+    return float(record["entry_sigma"]), f"measured from the beam frames ({isf_dir / NOISE_FILE})"
 
 
 def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver: str = "auto",

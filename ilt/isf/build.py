@@ -48,6 +48,7 @@ from ilt.isf.fine import (
     frames_inputs,
     write_fine,
 )
+from ilt.isf.noise import EntryNoise, fit_frame_noise, write_noise
 from ilt.parallel.chunks import beam_executor, chunks, run_chunks
 from ilt.spots.stage import SUM_FILE
 from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
@@ -243,9 +244,12 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     on_grid = hdr.mapping.to_grid(centroids)
     m = len(plan)
     labels = None
+    noise = None
     if sampling == "cell":
         frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
         lit, lit_info = (None, None) if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction)
+        # the frames' noise, read off their sum (ilt.isf.noise): T's noise, and the fine fit's test
+        noise = None if frame_sum is None else fit_frame_noise(frame_sum, hdr.m, on_grid)
         # cells end where the scan's light ends (the lit mask), not at a multiple of the
         # spot spacing: a denser scan covers at least what a sparser one did (issue 21).
         # Without the frames' sum there is no lit mask: then 2 spot spacings, as before
@@ -294,7 +298,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             accumulator = FineAccumulator(
                 np.lib.format.open_memmap(tmp / FINE_DIR / COEFFICIENTS_FILE, mode="w+", dtype=np.float32,
                                           shape=(terms, m, m)),
-                CellGeometry.from_labels(labels, m), fine_degree)
+                CellGeometry.from_labels(labels, m), fine_degree, noise)
+        entry_noise = None if noise is None else EntryNoise(noise, np.bincount(labels[labels >= 0], minlength=m))
         done = 0
         with beam_executor(executor, workers) as ex:
             for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
@@ -306,6 +311,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                     j = done + int(zero[0])
                     raise BuildError(f"beam {plan[j]} ({hdr.files[plan[j]]}): its image is zero at every sample")
                 T[:, done:done + b] = raw / norms
+                if entry_noise is not None:
+                    entry_noise.add(raw, norms)
                 if accumulator is not None:
                     accumulator.add(done, block[m:-m].reshape(terms, m, b), raw, block[-m:], norms)
                 done += b
@@ -327,6 +334,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                   "pixel_mapping": hdr.mapping.as_dict()}
         if labels is not None:
             fields["coverage"] = {"fraction": float(np.mean(labels >= 0)), "lit": lit_info}
+        if entry_noise is not None:
+            write_noise(tmp, noise, entry_noise.entry_sigma, str(spots_dir / SUM_FILE))
+            fields["noise"] = {"a": noise.a, "b": noise.b, "entry_sigma": entry_noise.entry_sigma}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
         save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")

@@ -135,6 +135,8 @@ class CellGeometry:
 #: fit across the peaks doubled bounce 2's error there; flat there, bounce 1-3 errors
 #: fell 10-20% below flat cells everywhere)
 MIN_EXPLAINED = 0.9
+#: ... or whose polynomial explains no more than this many spreads of what noise alone would
+NOISE_SIGMAS = 3.0
 
 
 def fit_operator(geometry: CellGeometry, degree: int) -> scipy.sparse.csr_matrix:
@@ -174,12 +176,14 @@ class FineAccumulator:
     (the coefficients themselves bit for bit).
     """
 
-    def __init__(self, out: np.ndarray, geometry: CellGeometry, degree: int):
-        self.out, self.degree = out, degree
+    def __init__(self, out: np.ndarray, geometry: CellGeometry, degree: int, noise=None):
+        self.out, self.degree, self.noise = out, degree, noise
         self.gram = geometry.gram(degree)                               # (m, K, K)
         self.area = np.maximum(geometry.area, 1.0)
         m = geometry.m
         self.explained, self.total = np.zeros(m), np.zeros(m)
+        # what the frames' noise alone puts into both sums, and the spread of its explained part
+        self.noise_explained, self.noise_total, self.noise_spread = np.zeros(m), np.zeros(m), np.zeros(m)
 
     def add(self, j0: int, coefficients: np.ndarray, raw: np.ndarray, squares: np.ndarray,
             scales: np.ndarray) -> None:
@@ -193,12 +197,31 @@ class FineAccumulator:
         variation[own, k] = 0.0
         self.total += variation.sum(axis=1)
         self.explained += np.einsum("aij,iab,bij->i", coefficients, self.gram, coefficients)
+        if self.noise is not None:
+            # noise of variance v per pixel puts (n - 1) v into a cell's variation about its
+            # mean and K v (a chi-square of K terms: spread 2 K v^2) into what K terms explain
+            K, n = coefficients.shape[0], self.area[:, None]
+            pixel = self.noise.cell_variance(raw, self.area) / n          # (m, b) mean per-pixel variance
+            pixel[own, k] = 0.0
+            self.noise_total += ((n - 1.0) * pixel).sum(axis=1)
+            self.noise_explained += (K * pixel).sum(axis=1)
+            self.noise_spread += (2.0 * K * pixel**2).sum(axis=1)
         coefficients /= scales[None, None, :]
         self.out[:, :, j0:j0 + b] = coefficients
 
     def finish(self) -> np.ndarray:
-        total = self.total
-        share = np.where(total > 0, self.explained / np.where(total > 0, total, 1.0), 1.0)
+        """Zero the cells kept flat; returns the (m,) shares, and flat cells get share < MIN_EXPLAINED.
+
+        With the frames' noise known, the test is on the light, not on light + noise: the
+        noise's expected parts are taken off both sums (noise alone made 73% of the cells
+        of a noisy path-traced scan flat), and a cell whose polynomial explains no more
+        than :data:`NOISE_SIGMAS` x the spread of what noise alone would is flat too: its
+        slopes are noise, and would add it to every bounce image."""
+        explained, total = self.explained - self.noise_explained, self.total - self.noise_total
+        share = np.where(total > 0, explained / np.where(total > 0, total, 1.0), 1.0)
+        if self.noise is not None:
+            share = np.where(explained > NOISE_SIGMAS * np.sqrt(self.noise_spread), share,
+                             np.minimum(share, 0.0))
         flat = np.flatnonzero(share < MIN_EXPLAINED)
         if flat.size:
             self.out[:, flat, :] = 0.0

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_isf.py throughput [--quick] [--beams M] [--width W --height H]
     python benchmarks/bench_isf.py sampling [--quick] [--densities 32,64,128]
+    python benchmarks/bench_isf.py noise [--quick] [--beams M] [--width W --height H]
 
 throughput: writes m synthetic beam frames (a Gaussian laser spot on a smooth
 interreflection-like background), then times, in this process, (a) just reading
@@ -9,6 +10,12 @@ every EXR, (b) ilt centroids + build-isf run together (``centroids_and_isf``: ev
 EXR decoded once) with N workers and (c) with 1 worker, the three back
 to back in every repeat. Prints medians and the ratios (stages / read, 1 worker / N
 workers). ``--profile`` prints a cProfile of one single-worker run instead.
+
+noise: the cost of carrying the frames' noise into T (issue 21, :mod:`ilt.isf.noise`:
+the fit on the frames' sum, each entry's variance, the fine fit's noise terms): build-isf
+on the synthetic frames (noise 0.01, and a dark strip where their sum reads below zero) as it is, and with the
+noise fit switched off (no noise.json, the fine fit's old test), back to back in every
+repeat; medians and the ratio (target <= 1.2).
 
 sampling: renders the flatland M at several beam densities (spot sigma 1/20 of the
 beam spacing, 16 surface patches per spacing), runs centroids, build-isf with cell
@@ -30,7 +37,9 @@ from pathlib import Path
 import numpy as np
 
 
-def synthetic_frames(directory: Path, m: int, width: int, height: int, seed: int = 0) -> None:
+def synthetic_frames(directory: Path, m: int, width: int, height: int, seed: int = 0, noise: float = 1e-4,
+                     dark: int = 0) -> None:
+    """``dark``: the background is 0 over that many px along the left edge (noise only there)."""
     from scipy.special import ndtr
 
     from ilt.io.exr import write_exr
@@ -49,7 +58,8 @@ def synthetic_frames(directory: Path, m: int, width: int, height: int, seed: int
         cy = gy[j // cols] + rng.uniform(-0.5, 0.5)
         spot = 2000.0 * np.outer(np.diff(ndtr((ey - cy) / 1.5)), np.diff(ndtr((ex - cx) / 1.5)))
         background = 0.05 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * (0.3 * width) ** 2))
-        write_exr(directory / f"beam-{j:05d}.exr", spot + background + rng.normal(0, 1e-4, (height, width)))
+        background[:, :dark] = 0.0
+        write_exr(directory / f"beam-{j:05d}.exr", spot + background + rng.normal(0, noise, (height, width)))
     write_json(directory / "manifest.json", {"layout": [1, m]})
 
 
@@ -97,6 +107,34 @@ def throughput(m: int, width: int, height: int, workers: int, repeats: int, prof
           f"{statistics.median(o / r for o, r in zip(times[1], times['read'])):.2f}")
     print(f"  speed-up {workers} workers over 1            {speedup:.2f} x (target >= 1.6 with 2)")
     print("  all times (s): " + "; ".join(f"{k}: " + ", ".join(f"{v:.2f}" for v in times[k]) for k in times))
+
+
+def noise_cost(m: int, width: int, height: int, workers: int, repeats: int) -> None:
+    import ilt.isf.build as build
+    from ilt.spots.stage import run_centroids
+
+    fit = build.fit_frame_noise
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        synthetic_frames(tmp / "hdr", m, width, height, noise=0.01, dark=width // 10)  # reads below 0 there
+        run_centroids(tmp / "hdr", tmp / "spots", workers=workers)
+        times: dict = {"with noise": [], "without": []}
+        try:
+            for _ in range(repeats + 1):   # the first round warms the page cache and is not counted
+                for key, f in (("with noise", fit), ("without", lambda *a, **k: None)):
+                    build.fit_frame_noise = f
+                    t = time.perf_counter()
+                    build.build_isf(tmp / "hdr", tmp / "spots", tmp / "isf", workers=workers, force=True)
+                    times[key].append(time.perf_counter() - t)
+                    assert (tmp / "isf" / "noise.json").exists() == (key == "with noise")
+        finally:
+            build.fit_frame_noise = fit
+    with_, without = (statistics.median(times[k][1:]) for k in ("with noise", "without"))
+    ratio = statistics.median(a / b for a, b in zip(times["with noise"][1:], times["without"][1:]))
+    print(f"build-isf, m = {m}, {width} x {height}, {workers} workers, medians of {repeats} repeats")
+    print(f"  noise carried into T     {with_:8.2f} s")
+    print(f"  without (as before)      {without:8.2f} s")
+    print(f"  ratio {ratio:.3f} (target <= 1.2)")
 
 
 def sampling_errors(scene_name: str, beams: int, spot: float, workdir: Path, n_bounces: int = 4) -> dict:
@@ -149,6 +187,13 @@ def main() -> None:
     t.add_argument("--workers", type=int, default=2)
     t.add_argument("--repeats", type=int, default=3)
     t.add_argument("--profile", action="store_true", help="cProfile one single-worker run instead")
+    n = sub.add_parser("noise")
+    n.add_argument("--quick", action="store_true", help="m = 128, 320 x 240")
+    n.add_argument("--beams", type=int, default=1024)
+    n.add_argument("--width", type=int, default=640)
+    n.add_argument("--height", type=int, default=480)
+    n.add_argument("--workers", type=int, default=2)
+    n.add_argument("--repeats", type=int, default=3)
     s = sub.add_parser("sampling")
     s.add_argument("--quick", action="store_true", help="densities 16, 32")
     s.add_argument("--densities", default="32,64,128")
@@ -159,6 +204,10 @@ def main() -> None:
         if args.quick:
             args.beams, args.width, args.height, args.repeats = 128, 320, 240, 1
         throughput(args.beams, args.width, args.height, args.workers, args.repeats, args.profile)
+    elif args.what == "noise":
+        if args.quick:
+            args.beams, args.width, args.height = 128, 320, 240
+        noise_cost(args.beams, args.width, args.height, args.workers, args.repeats)
     else:
         densities = [16, 32] if args.quick else [int(d) for d in args.densities.split(",")]
         sampling_table(densities, args.spot, args.scene)

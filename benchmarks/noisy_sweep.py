@@ -1,0 +1,183 @@
+"""Full-resolution accuracy against beam density on noisy frames, one rig, one set of pixels (issue 21).
+
+    python benchmarks/noisy_sweep.py [--scenes m,occluded,textured,box] [--electrons 2e4]
+                                     [--scratch DIR] [--plot PNG] [--json PATH]
+
+A user who wants better bounce images scans more beams of the same scene with the same
+camera. So each scene is rendered once as a dense beam lattice (``ilt simulate SCENE
+--frames``: flatland m = 384 at 8 px per beam, as benchmarks/fullres_accuracy.py sizes
+m = 384; the box 3 x 12 x 12 = 432 at 10 px), photon and read noise are added to every
+beam frame (``--electrons`` photo-electrons at the brightest spot pixel, 3 e- read noise,
+as benchmarks/bench_coverage.py makes them), and the scans are nested subsets of the
+lattice's frames, every k-th beam (flatland m = 48, 96, 192, 384; the box every 3rd, 2nd
+and each row and column of a face: 48, 108, 432), run through ``ilt centroids``,
+``ilt build-isf`` and ``ilt decompose`` as a user runs them (benchmarks/bench_refine.py's
+``scan``). The photos (room, flashlight, projector) are the simulator's, noise-free.
+
+Errors: relative L2 of the full-resolution bounces 1-3 of each photo against the exact
+ones over the pixels the sparsest scan covers (so every scan is judged on the same
+pixels; a pixel a denser scan leaves uncovered counts as all error), and the share of
+those pixels each scan covers. The rig's time of each scan is m x the per-beam time of
+``ilt capture --estimate configs/rig-example.toml`` (a tethered DSLR, its 11-exposure
+bracket and a dark frame a beam). The table flags every photo and bounce whose error
+rises from one density to the next; ``--plot`` draws error against beams and hours.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+PHOTOS = ("room", "flashlight", "projector")
+FLATLAND_LATTICE, FLATLAND_STRIDES = 384, (8, 4, 2, 1)
+BOX_SIDE, BOX_STRIDES = 12, (3, 2, 1)
+
+
+def _sibling(name: str):
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+refine_bench = _sibling("bench_refine")
+coverage_bench = refine_bench.coverage_bench
+
+
+def seconds_per_beam() -> float:
+    from ilt.capture.config import load_config
+    from ilt.capture.estimate import estimate
+
+    e = estimate(load_config(ROOT / "configs" / "rig-example.toml"))
+    return e.seconds / e.beams
+
+
+def lattice(scene: str) -> tuple[int, float, float]:
+    """(beams, px_per_beam, spot in beam spacings) of the scene's lattice."""
+    if scene == "box":
+        m = 3 * BOX_SIDE * BOX_SIDE
+        return m, 10.0, 0.05 * 16.0 / 10.0
+    px, spot = coverage_bench.frame_parameters(scene, FLATLAND_LATTICE)
+    return FLATLAND_LATTICE, px, spot
+
+
+def nested_sets(scene: str, m: int) -> dict[int, list[int]]:
+    """Beam count -> the lattice beams of every k-th beam (flatland), or every k-th row
+    and column of each face (the box, beams face by face in scanline order)."""
+    if scene != "box":
+        return {len(range(0, m, k)): list(range(0, m, k)) for k in FLATLAND_STRIDES}
+    side = BOX_SIDE
+    out = {}
+    for k in BOX_STRIDES:
+        keep = range(0, side, k)
+        beams = [f * side * side + r * side + c for f in range(3) for r in keep for c in keep]
+        out[len(beams)] = beams
+    return out
+
+
+def sweep(root: Path, scene: str, electrons: float, rng) -> dict:
+    m, px, spot = lattice(scene)
+    case = root / f"{scene}-{m}"
+    if not (case / "hdr").exists():
+        refine_bench.run("simulate", scene, "--frames", "--beams", m, "--px-per-beam", px, "--spot", spot,
+                         "-o", case, "--force")
+    hdr = case / "hdr"
+    if electrons > 0:
+        if not (case / "hdr-noisy").exists():
+            coverage_bench.noisy_copy(hdr, case / "hdr-noisy", electrons / coverage_bench.peak_of(hdr), rng)
+        hdr = case / "hdr-noisy"
+    sets = nested_sets(scene, m)
+    where = {count: refine_bench.scan(case, hdr, f"sweep-{count}", beams) for count, beams in sorted(sets.items())}
+    mask = refine_bench.covered(where[min(where)])
+    rows = {}
+    for count, w in where.items():
+        manifest = json.loads((w / "isf" / "manifest.json").read_text())
+        rows[count] = {"errors": refine_bench.errors(case, w, mask).tolist(),
+                       "covered": float(refine_bench.covered(w)[mask].mean()),
+                       "frame_coverage": float(manifest["coverage"]["fraction"]),
+                       "m_kept": int(manifest["m"])}
+    return {"scene": scene, "lattice": m, "px_per_beam": px, "spot": spot, "electrons": electrons,
+            "base_pixels": int(mask.sum()), "scans": rows}
+
+
+def rises(result: dict) -> list[str]:
+    """Every photo and bounce whose error rises from one density to the next, and any fall in coverage."""
+    counts = sorted(result["scans"])
+    out = []
+    for a, b in zip(counts, counts[1:]):
+        ea, eb = np.array(result["scans"][a]["errors"]), np.array(result["scans"][b]["errors"])
+        for p, photo in enumerate(PHOTOS):
+            for n in range(3):
+                if eb[p, n] > ea[p, n]:
+                    out.append(f"{photo} b{n + 1} {a} -> {b}: {ea[p, n]:.4f} -> {eb[p, n]:.4f}")
+        if result["scans"][b]["covered"] < result["scans"][a]["covered"]:
+            out.append(f"coverage {a} -> {b}: {result['scans'][a]['covered']:.4f} -> {result['scans'][b]['covered']:.4f}")
+    return out
+
+
+def table(result: dict, per_beam: float) -> str:
+    lines = [f"### {result['scene']}: lattice {result['lattice']} ({result['px_per_beam']:g} px per beam), "
+             f"{result['electrons']:g} e-, over the {result['base_pixels']} pixels of the sparsest scan", "",
+             "| m | m kept | rig hours | covered | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
+             + " | mean |", "|---|---|---|---|" + "---|" * 10]
+    for count, row in sorted(result["scans"].items()):
+        e = np.array(row["errors"])
+        lines.append(f"| {count} | {row['m_kept']} | {count * per_beam / 3600:.2f} | {row['covered']:.4f} | "
+                     + " | ".join(f"{v:.4f}" for v in e.ravel()) + f" | {e.mean():.4f} |")
+    bad = rises(result)
+    lines += ["", "rises: " + ("none" if not bad else "; ".join(bad))]
+    return "\n".join(lines)
+
+
+def plot(results: list[dict], per_beam: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(4.2 * len(results), 3.6), squeeze=False)
+    for ax, result in zip(axes[0], results):
+        counts = sorted(result["scans"])
+        errors = np.array([result["scans"][c]["errors"] for c in counts])       # (scans, photos, 3)
+        for n, style in zip(range(3), ("-o", "-s", "-^")):
+            ax.loglog(counts, errors[:, :, n].mean(axis=1), style, label=f"bounce {n + 1} (mean of photos)")
+        ax.set_xlabel("beams")
+        ax.set_title(f"{result['scene']} ({result['electrons']:g} e-)")
+        ax.grid(True, which="both", alpha=0.3)
+        top = ax.secondary_xaxis("top", functions=(lambda m: m * per_beam / 3600, lambda h: h * 3600 / per_beam))
+        top.set_xlabel("rig hours")
+    axes[0][0].set_ylabel("relative L2 error over the sparsest scan's pixels")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default="m,occluded,textured,box")
+    ap.add_argument("--electrons", type=float, default=2e4, help="0: noise-free frames")
+    ap.add_argument("--scratch", type=Path, required=True, help="renders and scans (kept: a rerun reuses them)")
+    ap.add_argument("--plot", type=Path)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    per_beam = seconds_per_beam()
+    print(f"rig time: {per_beam:.1f} s a beam (ilt capture --estimate configs/rig-example.toml)")
+    rng = np.random.default_rng(0)
+    results = []
+    for scene in filter(None, args.scenes.split(",")):
+        results.append(sweep(args.scratch / f"e{args.electrons:g}", scene, args.electrons, rng))
+        print("\n" + table(results[-1], per_beam), flush=True)
+    if args.plot:
+        plot(results, per_beam, args.plot)
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -110,7 +110,7 @@ def throughput(m: int, width: int, height: int, workers: int, repeats: int, prof
 
 
 def noise_cost(m: int, width: int, height: int, workers: int, repeats: int) -> None:
-    import ilt.isf.build as build
+    from ilt.isf import build
     from ilt.spots.stage import run_centroids
 
     fit = build.fit_frame_noise

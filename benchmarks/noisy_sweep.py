@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -110,7 +111,7 @@ def rises(result: dict) -> list[str]:
     """Every photo and bounce whose error rises from one density to the next, and any fall in coverage."""
     counts = sorted(result["scans"])
     out = []
-    for a, b in zip(counts, counts[1:]):
+    for a, b in itertools.pairwise(counts):
         ea, eb = np.array(result["scans"][a]["errors"]), np.array(result["scans"][b]["errors"])
         for p, photo in enumerate(PHOTOS):
             for n in range(3):
@@ -122,10 +123,10 @@ def rises(result: dict) -> list[str]:
 
 
 def table(result: dict, per_beam: float) -> str:
-    lines = [f"### {result['scene']}: lattice {result['lattice']} ({result['px_per_beam']:g} px per beam), "
-             f"{result['electrons']:g} e-, over the {result['base_pixels']} pixels of the sparsest scan", "",
-             "| m | m kept | rig hours | covered | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
-             + " | mean |", "|---|---|---|---|" + "---|" * 10]
+    lines = [(f"### {result['scene']}: lattice {result['lattice']} ({result['px_per_beam']:g} px per beam), "
+              f"{result['electrons']:g} e-, over the {result['base_pixels']} pixels of the sparsest scan"), "",
+             ("| m | m kept | rig hours | covered | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
+              + " | mean |"), "|---|---|---|---|" + "---|" * 10]
     for count, row in sorted(result["scans"].items()):
         e = np.array(row["errors"])
         lines.append(f"| {count} | {row['m_kept']} | {count * per_beam / 3600:.2f} | {row['covered']:.4f} | "

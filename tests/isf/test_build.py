@@ -104,17 +104,17 @@ def test_the_lit_test_leaves_out_what_only_noise_lights():
     zero-mean noise (sigma 1 a frame, 8 for the sum). The 1e-3 fraction alone keeps half
     the background (its positive noise); the noise test keeps the square and, of the
     background past the mean's reach, only a rim of noise within 4 px (the 2-sigma
-    hysteresis), and measures the 3 x 3 mean's noise (8 / 3). A faint band (4 sigma of the
+    hysteresis), and measures the 5 x 5 mean's noise (8 / 5). A faint band (4 sigma of the
     mean) touching the square is lit (a single 5-sigma cut lit a ninth of it). Noise-free, the
     same sum gives the fraction's mask."""
-    from ilt.isf.build import lit_mask
+    from ilt.isf.build import LIT_SMOOTH, lit_mask
 
     rng = np.random.default_rng(0)
     truth = np.zeros((80, 80))
     truth[20:60, 20:60] = 100.0
     noisy = truth + rng.normal(0, 8.0, truth.shape)
     spots = np.array([[30.0, 30.0], [50.0, 50.0]])
-    band = 4 * 8.0 / 3.0                 # 4 sigma of the 3 x 3 mean: below the 5 of a lone pixel
+    band = 4 * 8.0 / LIT_SMOOTH          # 4 sigma of the 5 x 5 mean: below the 5 of a lone pixel
     noisy[20:60, 60:66] += band          # a faint band touching the square
     lit, info = lit_mask(noisy, spots, 1e-3)
     background = truth == 0
@@ -125,7 +125,7 @@ def test_the_lit_test_leaves_out_what_only_noise_lights():
     assert lit[22:58, 22:58].all() and not lit[far].any()
     # the band stays lit (0.90) where a single 5-sigma cut kept a ninth of it
     assert lit[22:58, 61:65].mean() > 0.85
-    assert info["noise_sigma"] == pytest.approx(8.0 / 3.0, rel=0.1)
+    assert info["noise_sigma"] == pytest.approx(8.0 / LIT_SMOOTH, rel=0.1)
     clean, info = lit_mask(truth, spots, 1e-3)
     assert np.array_equal(clean, truth > 0.1) and info["noise_sigma"] == 0.0
 

@@ -48,7 +48,7 @@ from ilt.isf.fine import (
     frames_inputs,
     write_fine,
 )
-from ilt.isf.noise import EntryNoise, fit_frame_noise, write_noise
+from ilt.isf.noise import SAMPLE_FRAMES, T_VAR_FILE, EntryNoise, fit_frame_noise, write_noise
 from ilt.parallel.chunks import beam_executor, chunks, run_chunks
 from ilt.spots.stage import SUM_FILE
 from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
@@ -102,25 +102,30 @@ LIT_SIGMAS = 5.0
 #: ... or this many, where 8-connected to such a pixel (:func:`_hysteresis`)
 LIT_LOW_SIGMAS = 2.0
 #: the mean's window (px) on noisy frames
-LIT_SMOOTH = 5
+LIT_SMOOTH = 9
 
 
 def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
-             sigmas: float = LIT_SIGMAS) -> tuple[np.ndarray, dict]:
+             sigmas: float = LIT_SIGMAS, dark_noise: tuple[float, int] | None = None) -> tuple[np.ndarray, dict]:
     """(H, W) bool pixels the scan lights, and how the threshold was set.
 
     Noise-free frames (no negatives): a pixel is lit where the sum of all beam frames is
     above ``fraction`` x its median at the spot pixels. Noisy frames: where the sum's
-    5 x 5 mean (:data:`LIT_SMOOTH`) is above both that and ``sigmas`` x the mean's noise,
-    measured from its negative values (black-subtracted frames read below zero only by
-    noise, the sum of m frames carries the noise of m, and the negative half of
-    zero-mean noise gives its sigma as sqrt(mean(x^2 | x < 0))), or down to
+    9 x 9 mean (:data:`LIT_SMOOTH`) is above both that and ``sigmas`` x the mean's noise,
+    or down to
     :data:`LIT_LOW_SIGMAS` / ``sigmas`` of both where it touches such a pixel
     (:func:`_hysteresis`), with the holes the lit region encloses filled: the faint rim
     of the scan's light is not let in or out by the noise, so that a denser scan lights
     what a sparser one did (on the noisy M lattice of benchmarks/noisy_sweep.py the 96-beam
     scan lit 0.880 of the 48-beam scan's pixels when the fraction was a test of single
-    pixels and the mean 3 x 3; 0.997 so). Without the noise test, background pixels
+    pixels and the mean 3 x 3; 0.997 so). The mean's noise is ``sqrt(m v0) / 9`` with
+    ``dark_noise = (v0, m)``, a dark pixel's variance in one frame (the frames' noise
+    model, :mod:`ilt.isf.noise`) and the frames summed: so it grows as sqrt(m) exactly.
+    Without it, it is measured from the mean's negative values (black-subtracted frames
+    read below zero only by noise, and the negative half of zero-mean noise gives its
+    sigma as sqrt(mean(x^2 | x < 0))), which reads low where few pixels are truly dark (on
+    the noisy M lattice at m = 48, 0.59 against 0.82): a sparse scan's rim then went
+    further than a denser one's. Without the noise test, background pixels
     that only noise lit joined the cells and added their noise to T: on the noisy box
     (benchmarks/bench_coverage.py, 2e4 e- at the brightest spot pixel) the cells covered
     more than on noise-free frames, and bounces 1 and 2 got worse from m = 108 to 189;
@@ -134,11 +139,14 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     relative = fraction * float(np.median(frame_sum[rows, cols]))
     lit = frame_sum > relative
     noise = 0.0
-    if np.count_nonzero(frame_sum < 0) >= 16:
+    if dark_noise is not None or np.count_nonzero(frame_sum < 0) >= 16:
         smooth = uniform_filter(frame_sum, size=LIT_SMOOTH, mode="nearest")
         negative = smooth[smooth < 0]
-        if negative.size >= 16:
+        if dark_noise is not None:   # a dark pixel's variance in one frame, and the frames summed
+            noise = float(np.sqrt(dark_noise[0] * dark_noise[1])) / LIT_SMOOTH
+        elif negative.size >= 16:
             noise = float(np.sqrt(np.mean(negative**2)))
+        if noise > 0:
             # both tests on the smoothed sum, both with the hysteresis: the relative one on
             # single noisy pixels let a third of the rim in or out by the noise alone
             low = max(LIT_LOW_SIGMAS * noise, relative * LIT_LOW_SIGMAS / sigmas)
@@ -157,16 +165,20 @@ def _hysteresis(image: np.ndarray, low: float, high: float) -> np.ndarray:
     return np.isin(regions, strong[strong > 0])
 
 
-def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):
+def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None, noise=None):
     """Worker: one column of raw T per frame, (m, len(beams)) float64, and below it, with
-    a fine ``degree``, the frame's (K m) raw fine-operator coefficients (:mod:`ilt.isf.fine`).
+    a fine ``degree``, the frame's (K m) raw fine-operator coefficients (:mod:`ilt.isf.fine`)
+    and the cell sums of its squares (m), and with a ``noise`` model
+    (:class:`ilt.isf.noise.FrameNoise`, cell sampling) the cell sums of its variance (m).
 
     sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
     the (m,) flat pixel indices of the samples (point sampling). files: each beam's EXR,
     or None for a beam whose frame ``scratch`` (:class:`ilt.io.frames.FrameScratch`) keeps.
     """
     operator, cells = _cached_operator(sampler, m, degree) if isinstance(sampler, (str, Path)) else (None, None)
-    out = np.empty((m if operator is None else operator.shape[0] + (m if degree else 0), len(files)))
+    noise = noise if operator is not None else None
+    rows = m if operator is None else operator.shape[0] + (m if degree else 0) + (m if noise is not None else 0)
+    out = np.empty((rows, len(files)))
     frame = np.empty(shape)  # one float64 buffer for the chunk: the product reads it as is
     kept = np.empty(shape, np.float32) if scratch is not None else None
     fd = scratch.open() if scratch is not None and None in files else None
@@ -178,11 +190,17 @@ def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):
                 load_frame(path, shape, out=frame)
             if operator is None:
                 out[:, k] = frame.ravel()[sampler]
-            elif degree:
-                out[:operator.shape[0], k] = integrate_with(frame, operator)
-                out[operator.shape[0]:, k] = integrate_with(np.square(frame, out=frame), cells)
-            else:
-                out[:, k] = integrate_with(frame, operator)
+                continue
+            out[:operator.shape[0], k] = integrate_with(frame, operator)
+            second = []
+            if noise is not None:
+                second.append(noise.pixel_variance(frame))
+            if degree:
+                second.insert(0, np.square(frame, out=frame))
+            if len(second) == 2:   # both in one sparse product
+                out[operator.shape[0]:, k] = integrate_with(np.stack(second, axis=-1), cells).T.ravel()
+            elif second:
+                out[operator.shape[0]:, k] = integrate_with(second[0], cells)
     finally:
         if fd is not None:
             os.close(fd)
@@ -255,10 +273,18 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     labels = None
     noise = None
     if sampling == "cell":
+        # the frames' noise against their level, from a sample of them (ilt.isf.noise): the
+        # lit test's noise, each entry's variance (T_var.npy) and the fine fit's test take it
+        sample = np.unique(np.round(np.linspace(0, m - 1, min(SAMPLE_FRAMES, m))).astype(int))
+        try:
+            noise = fit_frame_noise([load_frame(hdr.files[plan[i]], hdr.frame_shape) for i in sample],
+                                    on_grid[sample])
+        except FrameError as exc:
+            raise BuildError(str(exc)) from None
         frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
-        lit, lit_info = (None, None) if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction)
-        # the frames' noise, read off their sum (ilt.isf.noise): T's noise, and the fine fit's test
-        noise = None if frame_sum is None else fit_frame_noise(frame_sum, hdr.m, on_grid)
+        dark = None if noise is None else (float(noise.pixel_variance(np.zeros(1))[0]), hdr.m)
+        lit, lit_info = (None, None) if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction,
+                                                                        dark_noise=dark)
         # cells end where the scan's light ends (the lit mask), not at a multiple of the
         # spot spacing: a denser scan covers at least what a sparser one did (issue 21).
         # Without the frames' sum there is no lit mask: then 2 spot spacings, as before
@@ -294,7 +320,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         scratch = FrameScratch(Path(frame_cache), hdr.frame_shape) if frame_cache is not None else None
         kept = scratch.kept() if scratch is not None else frozenset()
         tasks = [(c, [None if b in kept else hdr.files[b] for b in c], hdr.frame_shape, sampler, m,
-                  scratch if kept else None, fine_degree) for c in chunks(plan, chunk)]
+                  scratch if kept else None, fine_degree, noise) for c in chunks(plan, chunk)]
         # T's columns go straight into the memory-mapped T.npy, divided by their norms as
         # they arrive (elementwise, so the same floats as raw / scales on the whole); the
         # fine coefficients into a float32 memory map, block by block (FineAccumulator):
@@ -307,8 +333,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             accumulator = FineAccumulator(
                 np.lib.format.open_memmap(tmp / FINE_DIR / COEFFICIENTS_FILE, mode="w+", dtype=np.float32,
                                           shape=(terms, m, m)),
-                CellGeometry.from_labels(labels, m), fine_degree, noise)
-        entry_noise = None if noise is None else EntryNoise(noise, np.bincount(labels[labels >= 0], minlength=m))
+                CellGeometry.from_labels(labels, m), fine_degree, noise_aware=noise is not None)
+        entry_noise = None if noise is None else EntryNoise(
+            np.lib.format.open_memmap(tmp / T_VAR_FILE, mode="w+", dtype=np.float32, shape=(m, m)))
         done = 0
         with beam_executor(executor, workers) as ex:
             for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
@@ -320,10 +347,13 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                     j = done + int(zero[0])
                     raise BuildError(f"beam {plan[j]} ({hdr.files[plan[j]]}): its image is zero at every sample")
                 T[:, done:done + b] = raw / norms
+                # below T's rows: the fine fits (K m), the squares' cell sums (m), the variances' (m)
+                variance = block[-m:] if entry_noise is not None else None
                 if entry_noise is not None:
-                    entry_noise.add(raw, norms)
+                    entry_noise.add(done, variance, norms)
                 if accumulator is not None:
-                    accumulator.add(done, block[m:-m].reshape(terms, m, b), raw, block[-m:], norms)
+                    squares = block[m + terms * m:m + terms * m + m]
+                    accumulator.add(done, block[m:m + terms * m].reshape(terms, m, b), raw, squares, norms, variance)
                 done += b
         if kept:  # every kept frame is read: free its disk while the outputs are written
             _in_background(scratch.path.unlink, missing_ok=True)
@@ -344,8 +374,10 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         if labels is not None:
             fields["coverage"] = {"fraction": float(np.mean(labels >= 0)), "lit": lit_info}
         if entry_noise is not None:
-            write_noise(tmp, noise, entry_noise.entry_sigma, str(spots_dir / SUM_FILE))
-            fields["noise"] = {"a": noise.a, "b": noise.b, "entry_sigma": entry_noise.entry_sigma}
+            entry_noise.out.flush()
+            del entry_noise.out
+            write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} frames of {hdr.path}")
+            fields["noise"] = {"entry_sigma": entry_noise.entry_sigma, "frames": noise.frames}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
         save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")

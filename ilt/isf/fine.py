@@ -176,8 +176,8 @@ class FineAccumulator:
     (the coefficients themselves bit for bit).
     """
 
-    def __init__(self, out: np.ndarray, geometry: CellGeometry, degree: int, noise=None):
-        self.out, self.degree, self.noise = out, degree, noise
+    def __init__(self, out: np.ndarray, geometry: CellGeometry, degree: int, noise_aware: bool = False):
+        self.out, self.degree, self.noise_aware = out, degree, noise_aware
         self.gram = geometry.gram(degree)                               # (m, K, K)
         self.area = np.maximum(geometry.area, 1.0)
         m = geometry.m
@@ -186,10 +186,11 @@ class FineAccumulator:
         self.noise_explained, self.noise_total, self.noise_spread = np.zeros(m), np.zeros(m), np.zeros(m)
 
     def add(self, j0: int, coefficients: np.ndarray, raw: np.ndarray, squares: np.ndarray,
-            scales: np.ndarray) -> None:
+            scales: np.ndarray, variance: np.ndarray | None = None) -> None:
         """Beams ``j0 .. j0 + b - 1``: coefficients (K, m, b) float64 raw fits (modified
         in place), raw (m, b) cell sums, squares (m, b) cell sums of the squared frames,
-        scales (b,) their columns' 2-norms."""
+        scales (b,) their columns' 2-norms, variance (m, b) cell sums of the frames'
+        per-pixel variance (:mod:`ilt.isf.noise`; with ``noise_aware``)."""
         b = raw.shape[1]
         own, k = np.arange(j0, j0 + b), np.arange(b)
         coefficients[:, own, k] = 0.0
@@ -197,11 +198,11 @@ class FineAccumulator:
         variation[own, k] = 0.0
         self.total += variation.sum(axis=1)
         self.explained += np.einsum("aij,iab,bij->i", coefficients, self.gram, coefficients)
-        if self.noise is not None:
+        if self.noise_aware:
             # noise of variance v per pixel puts (n - 1) v into a cell's variation about its
             # mean and K v (a chi-square of K terms: spread 2 K v^2) into what K terms explain
             K, n = coefficients.shape[0], self.area[:, None]
-            pixel = self.noise.cell_variance(raw, self.area) / n          # (m, b) mean per-pixel variance
+            pixel = variance / n                                          # (m, b) mean per-pixel variance
             pixel[own, k] = 0.0
             self.noise_total += ((n - 1.0) * pixel).sum(axis=1)
             self.noise_explained += (K * pixel).sum(axis=1)
@@ -219,7 +220,7 @@ class FineAccumulator:
         slopes are noise, and would add it to every bounce image."""
         explained, total = self.explained - self.noise_explained, self.total - self.noise_total
         share = np.where(total > 0, explained / np.where(total > 0, total, 1.0), 1.0)
-        if self.noise is not None:
+        if self.noise_aware:
             share = np.where(explained > NOISE_SIGMAS * np.sqrt(self.noise_spread), share,
                              np.minimum(share, 0.0))
         flat = np.flatnonzero(share < MIN_EXPLAINED)

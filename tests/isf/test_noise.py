@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from ilt.io.exr import read_exr, write_exr
-from ilt.isf.build import build_isf
+from ilt.isf.build import build_isf, sample_like
 from ilt.isf.directory import load_isf
 from ilt.isf.fine import MIN_EXPLAINED, CellGeometry, FineAccumulator, fit_operator
-from ilt.isf.noise import NOISE_FILE, FrameNoise, fit_frame_noise, read_noise
+from ilt.isf.noise import NOISE_FILE, T_VAR_FILE, fit_frame_noise, read_noise
 
 READ_E = 3.0
 
@@ -26,35 +26,43 @@ def _noisy(image, gain, rng, read=READ_E):
     return (rng.poisson(np.maximum(image, 0) * gain) + rng.normal(0, read, image.shape)) / gain
 
 
-@pytest.mark.parametrize("gain", [2.0, 20.0])
-def test_the_frames_noise_is_read_off_their_sum(gain):
-    """The sum of m frames with photon noise (gain e- per unit) and read noise (READ_E
-    e-) has Var = m (READ_E / gain)^2 + S / gain: the fit gives both per frame, with
-    sharp spots in the sum (left out around their centroids) and a noise-free sum none.
-    The sum's light reaches several times its read noise's variance, so that the slope
-    is measurable (where S / gain stays below m a, b is known to no better than 2x)."""
+def _frames(rng, count=12, shape=(120, 160)):
+    """Smooth light (a broad bump and a ramp, a dark corner) and a sharp spot, moving."""
+    y, x = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    frames, spots = [], []
+    for k in range(count):
+        cx, cy = 20.0 + 10 * k, 30.0 + 5 * (k % 4)
+        f = 400.0 * np.exp(-((x - 90) ** 2 + (y - 60) ** 2) / (2 * 40.0**2)) + 0.5 * x
+        f[:30, :30] = 0.0
+        frames.append(f + 5000.0 * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / 2.0))
+        spots.append((cx, cy))
+    return frames, np.array(spots)
+
+
+@pytest.mark.parametrize("gain", [0.5, 5.0])
+def test_the_frames_noise_is_read_off_the_frames(gain):
+    """Frames with photon noise (gain e- per unit) and read noise (READ_E e-): the fitted
+    variance is X / gain + (READ_E / gain)^2 within 15% from the dark corner to the
+    bright light; noise-free frames give no model."""
     rng = np.random.default_rng(1)
-    m = 40
-    truth = _smooth_field()
-    spots = np.array([[30.5, 40.2], [150.0, 120.7], [90.3, 20.0]])
-    y, x = np.mgrid[:truth.shape[0], :truth.shape[1]]
-    for cx, cy in spots:
-        truth = truth + 8000.0 * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / 2.0)
-    S = sum(_noisy(truth / m, gain, rng) for _ in range(m))
-    fit = fit_frame_noise(S, m, spots)
-    assert fit.a == pytest.approx((READ_E / gain) ** 2, rel=0.05)
-    assert fit.b == pytest.approx(1.0 / gain, rel=0.15)
-    assert fit_frame_noise(truth, m, spots) is None
+    clean, spots = _frames(rng)
+    fit = fit_frame_noise([_noisy(f, gain, rng) for f in clean], spots)
+    for level in (0.0, 100.0, 200.0, 350.0):     # the levels the frames hold many pixels at
+        assert fit.pixel_variance(np.array([level]))[0] == pytest.approx(level / gain + (READ_E / gain) ** 2,
+                                                                         rel=0.15)
+    assert fit_frame_noise(clean, spots) is None
 
 
-def test_cell_variance_is_the_sum_over_the_cells_pixels():
-    """Var of a cell sum of n pixels with Var = a + b X each: a n + b (cell sum)."""
+def test_a_brackets_steps_are_followed():
+    """A merged bracket's bright pixels come from a shorter exposure: their variance per
+    unit of light is 8x the dim ones' above X = 150. The curve follows both (a line
+    through them would be 3x off at one end or the other)."""
     rng = np.random.default_rng(2)
-    noise = FrameNoise(a=(READ_E / 5.0) ** 2, b=1 / 5.0, beams=1, pixels=0, bins=0)
-    signal = rng.uniform(0, 30, size=(3, 50))      # 3 cells of 50 pixels
-    draws = np.stack([_noisy(signal, 5.0, rng).sum(axis=1) for _ in range(4000)])
-    predicted = noise.cell_variance(signal.sum(axis=1)[:, None], np.full(3, 50.0))[:, 0]
-    np.testing.assert_allclose(draws.var(axis=0), predicted, rtol=0.08)
+    clean, spots = _frames(rng)
+    sd = lambda f: np.sqrt(np.where(f < 150, 1.0 + 0.05 * f, 1.0 + 0.05 * 150 + 0.4 * (f - 150)))  # noqa: E731
+    fit = fit_frame_noise([f + rng.normal(0, 1, f.shape) * sd(np.maximum(f, 0)) for f in clean], spots)
+    for level in (10.0, 100.0, 300.0, 400.0):
+        assert fit.pixel_variance(np.array([level]))[0] == pytest.approx(float(sd(np.array(level))) ** 2, rel=0.2)
 
 
 def test_build_isf_carries_the_noise_into_t_and_decompose_uses_it(tmp_path):
@@ -75,15 +83,22 @@ def test_build_isf_carries_the_noise_into_t_and_decompose_uses_it(tmp_path):
                   {k: v for k, v in attributes.items() if k.startswith("ilt:")})
     run("centroids", noisy, "-o", tmp_path / "spots", "--workers", 1)
     build_isf(noisy, tmp_path / "spots", tmp_path / "isf", workers=1)
-    build_isf(sim / "hdr", tmp_path / "spots", tmp_path / "clean", workers=1, fine_degree=None)
     record = read_noise(tmp_path / "isf")
-    assert record["a"] == pytest.approx((READ_E / gain) ** 2, rel=0.1)
-    a, b = load_isf(tmp_path / "isf"), load_isf(tmp_path / "clean")
-    assert (a.cells == b.cells).all()
+    a = load_isf(tmp_path / "isf")
     scales = np.load(tmp_path / "isf" / "scales.npy")
-    difference = (a.T * scales - b.T * np.load(tmp_path / "clean" / "scales.npy")) / scales
-    assert record["entry_sigma"] == pytest.approx(float(np.sqrt(np.mean(difference**2))), rel=0.2)
-    assert json.loads((tmp_path / "isf" / "manifest.json").read_text())["outputs"].get(NOISE_FILE)
+    # the noise-free frames over the same cells: T's columns without the noise
+    assert a.m == len(frames)                       # no beam dropped: row j is frame j
+    clean = sample_like(a, np.stack([read_exr(f)[0][..., 0] for f in frames])).T
+    difference = (a.T * scales - clean) / scales
+    off = ~np.eye(a.m, dtype=bool)
+    variance = np.load(tmp_path / "isf" / T_VAR_FILE)
+    assert record["entry_sigma"] == pytest.approx(float(np.sqrt(np.mean(difference[off] ** 2))), rel=0.2)
+    assert record["entry_sigma"] == pytest.approx(float(np.sqrt(np.mean(variance[off]))), rel=1e-5)
+    # and entry by entry: the noisiest tenth of the entries as T_var says is as noisy as it says
+    top = off & (variance >= np.quantile(variance[off], 0.9))
+    assert float(np.mean(difference[top] ** 2)) == pytest.approx(float(np.mean(variance[top])), rel=0.3)
+    outputs = json.loads((tmp_path / "isf" / "manifest.json").read_text())["outputs"]
+    assert outputs.get(NOISE_FILE) and outputs.get(T_VAR_FILE)
 
     run("decompose", "--isf", tmp_path / "isf", sim / "photos" / "room.exr", "-o", tmp_path / "dec", "--no-cache")
     summary = json.loads((tmp_path / "dec" / "room" / "summary.json").read_text())
@@ -100,8 +115,7 @@ def _two_cells(rng, slope, pixel_sigma):
     labels[:, 24:] = 1
     geometry = CellGeometry.from_labels(labels, 2)
     fit = fit_operator(geometry, 1)
-    noise = FrameNoise(a=pixel_sigma**2, b=0.0, beams=1, pixels=0, bins=0) if pixel_sigma else None
-    acc = FineAccumulator(np.zeros((2, 2, 2), np.float32), geometry, 1, noise)
+    acc = FineAccumulator(np.zeros((2, 2, 2), np.float32), geometry, 1, noise_aware=pixel_sigma > 0)
     x = np.arange(48.0)[None, :].repeat(24, axis=0)
     frames = np.stack([np.where(labels == 1, 5.0 + slope * (x - 35.5), 50.0), np.full(labels.shape, 5.0)])
     frames = frames + rng.normal(0, pixel_sigma, frames.shape)
@@ -109,7 +123,8 @@ def _two_cells(rng, slope, pixel_sigma):
     coefficients = np.stack([fit @ f for f in flat], axis=-1).reshape(2, 2, 2)
     raw = np.stack([np.bincount(labels.ravel(), f, 2) for f in flat], axis=1)
     squares = np.stack([np.bincount(labels.ravel(), f**2, 2) for f in flat], axis=1)
-    acc.add(0, coefficients, raw, squares, np.ones(2))
+    variance = np.full((2, 2), pixel_sigma**2 * 24 * 24)      # the cell sums of each pixel's variance
+    acc.add(0, coefficients, raw, squares, np.ones(2), variance if pixel_sigma else None)
     return acc
 
 
@@ -122,7 +137,7 @@ def test_the_fine_fit_tells_a_slope_from_noise():
     assert known[1] >= MIN_EXPLAINED and known[0] < MIN_EXPLAINED
     rng = np.random.default_rng(4)
     unknown = _two_cells(rng, slope=0.3, pixel_sigma=1.0)
-    unknown.noise = None
+    unknown.noise_aware = False
     unknown.noise_explained[:] = unknown.noise_total[:] = 0.0
     assert unknown.finish()[1] < MIN_EXPLAINED
     clean = _two_cells(rng, slope=0.3, pixel_sigma=0.0).finish()

@@ -50,7 +50,7 @@ from ilt.isf.fine import (
 )
 from ilt.isf.noise import SAMPLE_FRAMES, T_VAR_FILE, EntryNoise, fit_frame_noise, write_noise
 from ilt.parallel.chunks import beam_executor, chunks, run_chunks
-from ilt.spots.stage import SUM_FILE
+from ilt.spots.stage import PEAK_FILE, PEAK_SMOOTH, SUM_FILE
 from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
 
 log = logging.getLogger(__name__)
@@ -103,10 +103,13 @@ LIT_SIGMAS = 5.0
 LIT_LOW_SIGMAS = 2.0
 #: the mean's window (px) on noisy frames
 LIT_SMOOTH = 9
+#: the peak test's thresholds are those of the largest of this many noise-only frames (or of m, when more)
+PEAK_BEAMS = 4096
 
 
 def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
-             sigmas: float = LIT_SIGMAS, dark_noise: tuple[float, int] | None = None) -> tuple[np.ndarray, dict]:
+             sigmas: float = LIT_SIGMAS, dark_noise: tuple[float, int] | None = None,
+             frame_peak: np.ndarray | None = None, beams: int | None = None) -> tuple[np.ndarray, dict]:
     """(H, W) bool pixels the scan lights, and how the threshold was set.
 
     Noise-free frames (no negatives): a pixel is lit where the sum of all beam frames is
@@ -150,8 +153,32 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
             # both tests on the smoothed sum, both with the hysteresis: the relative one on
             # single noisy pixels let a third of the rim in or out by the noise alone
             low = max(LIT_LOW_SIGMAS * noise, relative * LIT_LOW_SIGMAS / sigmas)
-            lit = binary_fill_holes(_hysteresis(smooth, low, max(sigmas * noise, relative)))
+            lit = _hysteresis(smooth, low, max(sigmas * noise, relative))
+            if frame_peak is not None and beams:
+                lit |= _peak_test(np.asarray(frame_peak, np.float64), rows, cols, fraction, sigmas,
+                                  noise * np.sqrt(LIT_SMOOTH**2 / (PEAK_SMOOTH**2 * beams)), beams)
+            lit = binary_fill_holes(lit)
     return lit, {"relative_threshold": relative, "noise_sigma": noise, "noise_threshold": sigmas * noise}
+
+
+def _peak_test(peak: np.ndarray, rows, cols, fraction: float, sigmas: float, noise: float, beams: int) -> np.ndarray:
+    """Pixels that one beam frame lights: where the largest of the frames' local means
+    (``peak.exr``) passes the sum's two tests, with the noise of one frame's mean
+    (``noise``) and the thresholds raised so that the largest of :data:`PEAK_BEAMS` (or
+    ``beams``, when more) noise-only means passes no more often than one at the sum's
+    (6.4 and 4.4 sigma). A pixel that only its nearest beams
+    light gains nothing from other beams but their noise, so the sum's test lost it as a
+    scan grew denser (on the noisy occluded M, 1.1% of the 48-beam scan's pixels at 96
+    beams, holding 3.7% of a photo's direct light); the largest frame never falls."""
+    from scipy.special import ndtr, ndtri
+
+    relative = fraction * float(np.median(peak[rows, cols]))
+    # at a fixed count of frames up to PEAK_BEAMS: thresholds that rose with m (as ln m) lost
+    # a sparser scan's rim at the next density, where the largest frame was the same
+    count = max(beams, PEAK_BEAMS)
+    high = float(ndtri(1.0 - ndtr(-sigmas) / count)) * noise
+    low = float(ndtri(1.0 - ndtr(-LIT_LOW_SIGMAS) / count)) * noise
+    return _hysteresis(peak, max(low, relative * LIT_LOW_SIGMAS / sigmas), max(high, relative))
 
 
 def _hysteresis(image: np.ndarray, low: float, high: float) -> np.ndarray:
@@ -282,9 +309,11 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         except FrameError as exc:
             raise BuildError(str(exc)) from None
         frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
+        peak = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping, PEAK_FILE) if frame_sum is not None else None
         dark = None if noise is None else (float(noise.pixel_variance(np.zeros(1))[0]), hdr.m)
         lit, lit_info = (None, None) if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction,
-                                                                        dark_noise=dark)
+                                                                        dark_noise=dark, frame_peak=peak,
+                                                                        beams=hdr.m)
         # cells end where the scan's light ends (the lit mask), not at a multiple of the
         # spot spacing: a denser scan covers at least what a sparser one did (issue 21).
         # Without the frames' sum there is no lit mask: then 2 spot spacings, as before
@@ -436,10 +465,10 @@ def centroids_and_isf(hdr_dir: str | os.PathLike, spots_out: str | os.PathLike, 
     return spots, isf
 
 
-def _read_sum(spots_dir: Path, shape, mapping) -> np.ndarray | None:
+def _read_sum(spots_dir: Path, shape, mapping, name: str = SUM_FILE) -> np.ndarray | None:
     from ilt.io.frames import read_frame_with_mapping
 
-    path = spots_dir / SUM_FILE
+    path = spots_dir / name
     if not path.exists():   # build_isf says what it does instead
         return None
     try:

@@ -20,14 +20,17 @@ log = logging.getLogger(__name__)
 
 
 SUM_FILE = "sum.exr"
+#: per pixel, the largest over the beam frames of its PEAK_SMOOTH x PEAK_SMOOTH mean
+PEAK_FILE = "peak.exr"
+PEAK_SMOOTH = 9
 
 OVERLAY_FILE = "overlay.png"
 
 
 def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scratch=None):
     """Worker: spots of a chunk of frames (full-frame pixels), the chunk's pixelwise sum
-    (H, W) float32 on the frame grid, the frame grid's pixel mapping, and the beams whose
-    frames were kept in ``scratch``.
+    (H, W) float32 on the frame grid and its pixelwise largest local mean (``peak.exr``),
+    the frame grid's pixel mapping, and the beams whose frames were kept in ``scratch``.
 
     sources: what ``reader(source, dark)`` turns into ``(frame, mapping or None,
     saturation)`` (EXR paths, or beam directories of a capture; ``default_mapping``
@@ -35,7 +38,9 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
     :class:`ilt.io.frames.FrameScratch` where each frame is also written for a following
     build-isf, so that a combined run decodes every EXR once.
     """
-    spots, total, mapping, kept = [], None, None, []
+    from scipy.ndimage import uniform_filter
+
+    spots, total, peak, mapping, kept = [], None, None, None, []
     fd = scratch.open(write=True) if scratch is not None else None
     try:
         for beam, source in zip(beams, sources):
@@ -44,6 +49,7 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
             if total is None:
                 # float32 within a chunk (16 frames: a few ulp), float64 across chunks
                 total, mapping = np.zeros(frame.shape, np.float32), own
+                peak = np.full(frame.shape, -np.inf, np.float32)
             elif frame.shape != total.shape or own != mapping:
                 from ilt.io.frames import FrameError
 
@@ -52,6 +58,8 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
             grid_params = _grid_parameters(params, own, saturation)
             spots.append(_to_full_frame(find_spot(frame, grid_params), own))
             total += frame
+            np.maximum(peak, uniform_filter(frame.astype(np.float32, copy=False), PEAK_SMOOTH, mode="nearest"),
+                       out=peak)
             if fd is not None:
                 if _keep_frame(scratch, fd, beam, frame):
                     kept.append(beam)
@@ -61,7 +69,7 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
     finally:
         if fd is not None:
             os.close(fd)
-    return spots, total, mapping, kept  # float32: half the bytes back to the caller
+    return spots, total, peak, mapping, kept  # float32: half the bytes back to the caller
 
 
 def _keep_frame(scratch, fd: int, beam: int, frame: np.ndarray) -> bool:
@@ -211,17 +219,18 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
     tasks = [(c, [sources[b] for b in c], reader, params, str(dark) if dark else None, default_mapping,
               scratch) for c in chunks(beams, chunk)]
     spots: list[Spot] = []
-    total, mapping, kept = None, None, []
+    total, peak, mapping, kept = None, None, None, []
     with beam_executor(executor, workers) as ex:
-        for c, (chunk_spots, chunk_total, chunk_mapping, chunk_kept) in zip(
+        for c, (chunk_spots, chunk_total, chunk_peak, chunk_mapping, chunk_kept) in zip(
                 (t[0] for t in tasks), run_chunks(_centroid_chunk, tasks, ex, progress=progress)):
             if total is None:
-                total, mapping = chunk_total.astype(np.float64), chunk_mapping
+                total, peak, mapping = chunk_total.astype(np.float64), chunk_peak, chunk_mapping
             elif chunk_total.shape != total.shape or chunk_mapping != mapping:
                 raise SpotsError(f"{sources[c[0]]}: beam {c[0]}: frame of {chunk_total.shape[1]} x "
                                  f"{chunk_total.shape[0]} pixels differs from beam 0's")
             else:
                 total += chunk_total
+                np.maximum(peak, chunk_peak, out=peak)
             spots.extend(chunk_spots)
             kept.extend(chunk_kept)
     if scratch is not None:
@@ -236,6 +245,9 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
     with staged_directory(out, force=force) as tmp:
         write_spots(tmp / SPOTS_FILE, beams, spots)
         write_exr(tmp / SUM_FILE, total, attributes={"ilt:quantity": "sum of beam frames", **mapping.attributes()})
+        write_exr(tmp / PEAK_FILE, peak, attributes={
+            "ilt:quantity": f"largest over the beam frames of the {PEAK_SMOOTH} x {PEAK_SMOOTH} mean",
+            **mapping.attributes()})
         draw_overlay(tmp / OVERLAY_FILE, total, spots, mapping)
         parameters = {k: v for k, v in asdict(params).items()}
         parameters["dark"] = str(dark) if dark else None

@@ -405,7 +405,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         if entry_noise is not None:
             entry_noise.out.flush()
             del entry_noise.out
-            write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} frames of {hdr.path}")
+            write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} of the beam frames, spread over the scan")
             fields["noise"] = {"entry_sigma": entry_noise.entry_sigma, "frames": noise.frames}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
         save_npy(tmp / SCALES_FILE, scales)

@@ -1,7 +1,8 @@
 """Full-resolution accuracy against beam density on noisy frames, one rig, one set of pixels (issue 21).
 
     python benchmarks/noisy_sweep.py [--scenes m,occluded,textured,box] [--electrons 2e4]
-                                     [--scratch DIR] [--plot PNG] [--json PATH]
+                                     --scratch DIR [--plot PNG] [--json PATH]
+    python benchmarks/noisy_sweep.py --replot JSON --plot PNG
 
 A user who wants better bounce images scans more beams of the same scene with the same
 camera. So each scene is rendered once as a dense beam lattice (``ilt simulate SCENE
@@ -141,6 +142,7 @@ def plot(results: list[dict], per_beam: float, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     fig, axes = plt.subplots(1, len(results), figsize=(4.2 * len(results), 3.6), squeeze=False)
     for ax, result in zip(axes[0], results):
@@ -151,8 +153,12 @@ def plot(results: list[dict], per_beam: float, path: Path) -> None:
         ax.set_xlabel("beams")
         ax.set_title(f"{result['scene']} ({result['electrons']:g} e-)")
         ax.grid(True, which="both", alpha=0.3)
+        ax.set_xticks(counts, [str(c) for c in counts])
+        ax.xaxis.set_minor_formatter(NullFormatter())
         top = ax.secondary_xaxis("top", functions=(lambda m: m * per_beam / 3600, lambda h: h * 3600 / per_beam))
-        top.set_xlabel("rig hours")
+        top.set_xticks([c * per_beam / 3600 for c in counts], [f"{c * per_beam / 3600:.2f}" for c in counts])
+        top.xaxis.set_minor_formatter(NullFormatter())
+        top.set_xlabel("rig hours (configs/rig-example.toml's estimate)")
     axes[0][0].set_ylabel("relative L2 error over the sparsest scan's pixels")
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
@@ -163,10 +169,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default="m,occluded,textured,box")
     ap.add_argument("--electrons", type=float, default=2e4, help="0: noise-free frames")
-    ap.add_argument("--scratch", type=Path, required=True, help="renders and scans (kept: a rerun reuses them)")
+    ap.add_argument("--scratch", type=Path, help="renders and scans (kept: a rerun reuses them)")
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--replot", type=Path, help="only draw --plot from this --json of an earlier run")
     args = ap.parse_args()
+    if args.replot:
+        plot([{**r, "scans": {int(k): v for k, v in r["scans"].items()}} for r in json.loads(args.replot.read_text())],
+             seconds_per_beam(), args.plot)
+        return
+    if args.scratch is None:
+        ap.error("--scratch is required (unless --replot)")
     per_beam = seconds_per_beam()
     print(f"rig time: {per_beam:.1f} s a beam (ilt capture --estimate configs/rig-example.toml)")
     rng = np.random.default_rng(0)

@@ -48,7 +48,14 @@ from ilt.isf.fine import (
     frames_inputs,
     write_fine,
 )
-from ilt.isf.noise import SAMPLE_FRAMES, T_VAR_FILE, EntryNoise, fit_frame_noise, write_noise
+from ilt.isf.noise import (
+    SAMPLE_FRAMES,
+    T_VAR_FILE,
+    EntryNoise,
+    cell_variance,
+    fit_frame_noise,
+    write_noise,
+)
 from ilt.parallel.chunks import beam_executor, chunks, run_chunks
 from ilt.spots.stage import PEAK_FILE, PEAK_SMOOTH, SUM_FILE
 from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
@@ -192,20 +199,17 @@ def _hysteresis(image: np.ndarray, low: float, high: float) -> np.ndarray:
     return np.isin(regions, strong[strong > 0])
 
 
-def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None, noise=None):
+def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):
     """Worker: one column of raw T per frame, (m, len(beams)) float64, and below it, with
     a fine ``degree``, the frame's (K m) raw fine-operator coefficients (:mod:`ilt.isf.fine`)
-    and the cell sums of its squares (m), and with a ``noise`` model
-    (:class:`ilt.isf.noise.FrameNoise`, cell sampling) the cell sums of its variance (m).
+    and the cell sums of its squares (m).
 
     sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
     the (m,) flat pixel indices of the samples (point sampling). files: each beam's EXR,
     or None for a beam whose frame ``scratch`` (:class:`ilt.io.frames.FrameScratch`) keeps.
     """
     operator, cells = _cached_operator(sampler, m, degree) if isinstance(sampler, (str, Path)) else (None, None)
-    noise = noise if operator is not None else None
-    rows = m if operator is None else operator.shape[0] + (m if degree else 0) + (m if noise is not None else 0)
-    out = np.empty((rows, len(files)))
+    out = np.empty((m if operator is None else operator.shape[0] + (m if degree else 0), len(files)))
     frame = np.empty(shape)  # one float64 buffer for the chunk: the product reads it as is
     kept = np.empty(shape, np.float32) if scratch is not None else None
     fd = scratch.open() if scratch is not None and None in files else None
@@ -217,17 +221,11 @@ def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None, no
                 load_frame(path, shape, out=frame)
             if operator is None:
                 out[:, k] = frame.ravel()[sampler]
-                continue
-            out[:operator.shape[0], k] = integrate_with(frame, operator)
-            second = []
-            if noise is not None:
-                second.append(noise.pixel_variance(frame))
-            if degree:
-                second.insert(0, np.square(frame, out=frame))
-            if len(second) == 2:   # both in one sparse product
-                out[operator.shape[0]:, k] = integrate_with(np.stack(second, axis=-1), cells).T.ravel()
-            elif second:
-                out[operator.shape[0]:, k] = integrate_with(second[0], cells)
+            elif degree:
+                out[:operator.shape[0], k] = integrate_with(frame, operator)
+                out[operator.shape[0]:, k] = integrate_with(np.square(frame, out=frame), cells)
+            else:
+                out[:, k] = integrate_with(frame, operator)
     finally:
         if fd is not None:
             os.close(fd)
@@ -349,7 +347,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         scratch = FrameScratch(Path(frame_cache), hdr.frame_shape) if frame_cache is not None else None
         kept = scratch.kept() if scratch is not None else frozenset()
         tasks = [(c, [None if b in kept else hdr.files[b] for b in c], hdr.frame_shape, sampler, m,
-                  scratch if kept else None, fine_degree, noise) for c in chunks(plan, chunk)]
+                  scratch if kept else None, fine_degree) for c in chunks(plan, chunk)]
         # T's columns go straight into the memory-mapped T.npy, divided by their norms as
         # they arrive (elementwise, so the same floats as raw / scales on the whole); the
         # fine coefficients into a float32 memory map, block by block (FineAccumulator):
@@ -365,6 +363,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                 CellGeometry.from_labels(labels, m), fine_degree, noise_aware=noise is not None)
         entry_noise = None if noise is None else EntryNoise(
             np.lib.format.open_memmap(tmp / T_VAR_FILE, mode="w+", dtype=np.float32, shape=(m, m)))
+        area = None if labels is None else np.bincount(labels[labels >= 0], minlength=m).astype(np.float64)
         done = 0
         with beam_executor(executor, workers) as ex:
             for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
@@ -376,13 +375,12 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                     j = done + int(zero[0])
                     raise BuildError(f"beam {plan[j]} ({hdr.files[plan[j]]}): its image is zero at every sample")
                 T[:, done:done + b] = raw / norms
-                # below T's rows: the fine fits (K m), the squares' cell sums (m), the variances' (m)
-                variance = block[-m:] if entry_noise is not None else None
+                # each entry's variance: its cell's pixels at the cell's mean level (ilt.isf.noise)
+                variance = None if entry_noise is None else cell_variance(noise, raw, area)
                 if entry_noise is not None:
                     entry_noise.add(done, variance, norms)
                 if accumulator is not None:
-                    squares = block[m + terms * m:m + terms * m + m]
-                    accumulator.add(done, block[m:m + terms * m].reshape(terms, m, b), raw, squares, norms, variance)
+                    accumulator.add(done, block[m:-m].reshape(terms, m, b), raw, block[-m:], norms, variance)
                 done += b
         if kept:  # every kept frame is read: free its disk while the outputs are written
             _in_background(scratch.path.unlink, missing_ok=True)
@@ -481,7 +479,7 @@ def _read_sum(spots_dir: Path, shape, mapping, name: str = SUM_FILE) -> np.ndarr
     return image.astype(np.float64)
 
 
-__all__ = ["build_isf", "centroids_and_isf", "select_beams", "lit_mask", "sample_like", "BuildError", "SAMPLINGS"]
+__all__ = ["SAMPLINGS", "BuildError", "build_isf", "centroids_and_isf", "lit_mask", "sample_like", "select_beams"]
 
 
 def sample_like(isf, frames: np.ndarray) -> np.ndarray:

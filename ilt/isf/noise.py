@@ -4,7 +4,7 @@ A beam frame's pixel X carries photon noise, which grows with its signal, and re
 which does not; a merged bracket adds steps (a bright pixel comes from shorter exposures,
 so its variance per unit of signal is larger). build-isf measures ``Var[X]`` as a
 function of the pixel's level, whatever made the frames (ilt merge, another lab's HDR
-tool, a simulator), from a sample of the beam frames (:data:`SAMPLE_FRAMES`, evenly spread
+tool, a simulator), from a sample of the beam frames (:data:`SAMPLE_FRAMES`, 8, evenly spread
 over the scan), by :func:`fit_frame_noise`:
 
 - the residual ``d = X - mean of its 4 neighbours`` removes the smooth light (the
@@ -19,8 +19,9 @@ over the scan), by :func:`fit_frame_noise`:
   ``v(X)``; below the first knot, the first knot's value; above the last, proportional to X.
 
 An entry of T is a cell sum of one frame's pixels, so its variance is the cell sum of
-``v(X)``: each beam frame's variance image is integrated over the cells in the same
-sparse product that sums its squares (:mod:`ilt.isf.build`), written as ``T_var.npy``
+``v(X)``, taken with every pixel at the cell's mean level (:func:`cell_variance`: no pass
+over the pixels; the interreflected light varies little inside a cell, and a per-pixel
+integral cost 1.4x build-isf's time), written as ``T_var.npy``
 (float32, the variance of T's unit-column entries), and ``noise.json`` records the knots
 and ``entry_sigma``, the RMS noise of T's entries off its diagonal (the interreflected
 light that the inversion amplifies and that regularisation smooths; the diagonal, a
@@ -40,12 +41,12 @@ import numpy as np
 NOISE_FILE = "noise.json"
 T_VAR_FILE = "T_var.npy"
 #: beam frames the fit reads, evenly spread over the scan
-SAMPLE_FRAMES = 16
+SAMPLE_FRAMES = 8
 #: bins of the fit (equal pixel counts) and the fewest pixels a bin needs
 BINS = 48
 MIN_BIN_PIXELS = 64
 #: pixels binned at most (evenly strided): sorting them is the fit's cost
-MAX_PIXELS = 1_000_000
+MAX_PIXELS = 250_000
 #: pixels this close to a frame's spot centroid (frame-grid px) are left out of the fit
 SPOT_RADIUS = 6.0
 #: normal sigma per MAD
@@ -132,6 +133,15 @@ def fit_frame_noise(frames, spots=None) -> FrameNoise | None:
                       frames=len(frames), pixels=int(s.size), bins=int(x.size))
 
 
+def cell_variance(noise: FrameNoise, raw: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """(m, b) variance of raw cell sums ``raw`` over cells of ``area`` pixels: each pixel at
+    its cell's mean level, ``n v(raw / n)``. The curve is convex, so this is the sum of
+    the pixels' variances to within the light's variation inside the cell (small for the
+    interreflected light; a spot's own cell, whose pixels span decades, gets less)."""
+    n = np.maximum(np.asarray(area, dtype=np.float64), 1.0)[:, None]
+    return n * noise.pixel_variance(raw / n)
+
+
 class EntryNoise:
     """T's unit-column entry variances, a block of columns at a time as build-isf makes
     them, into ``out`` ((m, m) float32, a memory map of T_var.npy); ``entry_sigma`` is the
@@ -176,5 +186,5 @@ def read_noise(directory: str | Path) -> dict | None:
     return data
 
 
-__all__ = ["NOISE_FILE", "T_VAR_FILE", "EntryNoise", "FrameNoise", "fit_frame_noise", "frame_residuals",
+__all__ = ["NOISE_FILE", "T_VAR_FILE", "EntryNoise", "FrameNoise", "cell_variance", "fit_frame_noise", "frame_residuals",
            "read_noise", "write_noise"]

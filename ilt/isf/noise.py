@@ -16,7 +16,9 @@ over the scan), by :func:`fit_frame_noise`:
   pixels within :data:`SPOT_RADIUS` px of the frame's own spot are left out;
 - the bins' variances, made non-decreasing in the level (isotonic regression, weighted by
   the bins' counts: noise never falls as light grows), are the knots of a piecewise-linear
-  ``v(X)``; below the first knot, the first knot's value; above the last, proportional to X.
+  ``v(X)``; below the first knot, the first knot's value; above the last, a line with the
+  slope of the upper half of the knots (photon noise: proportional extrapolation read the
+  read noise as photon noise too, 67% high on the box's spot flanks).
 
 An entry of T is a cell sum of one frame's pixels, so its variance is the cell sum of
 ``v(X)``, taken with every pixel at the cell's mean level (:func:`cell_variance`: no pass
@@ -65,19 +67,20 @@ class FrameNoise:
     frames: int
     pixels: int
     bins: int
+    slope: float = 0.0
 
     def pixel_variance(self, signal: np.ndarray) -> np.ndarray:
         x, v = np.asarray(self.levels), np.asarray(self.variances)
         signal = np.asarray(signal, dtype=np.float64)
         out = np.interp(signal, x, v)
         above = signal > x[-1]
-        if above.any() and x[-1] > 0:
-            out[above] = v[-1] * signal[above] / x[-1]
+        if above.any():
+            out[above] = v[-1] + self.slope * (signal[above] - x[-1])
         return out
 
     def as_dict(self) -> dict:
-        return {"levels": list(self.levels), "variances": list(self.variances), "frames": self.frames,
-                "pixels": self.pixels, "bins": self.bins}
+        return {"levels": list(self.levels), "variances": list(self.variances), "slope": self.slope,
+                "frames": self.frames, "pixels": self.pixels, "bins": self.bins}
 
 
 def frame_residuals(frame: np.ndarray, spot: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -129,8 +132,11 @@ def fit_frame_noise(frames, spots=None) -> FrameNoise | None:
     x, v = np.array(levels), np.array(variances)
     v = isotonic_regression(v, weights=np.array(counts)).x
     x, keep = np.unique(x, return_index=True)        # knots at distinct levels
-    return FrameNoise(levels=tuple(float(a) for a in x), variances=tuple(float(b) for b in v[keep]),
-                      frames=len(frames), pixels=int(s.size), bins=int(x.size))
+    v = v[keep]
+    upper = slice(x.size // 2, None)                 # above the last knot: the upper half's slope
+    slope = float(np.polyfit(x[upper], v[upper], 1)[0]) if x[upper].size >= 2 and np.ptp(x[upper]) > 0 else 0.0
+    return FrameNoise(levels=tuple(float(a) for a in x), variances=tuple(float(b) for b in v),
+                      frames=len(frames), pixels=int(s.size), bins=int(x.size), slope=max(slope, 0.0))
 
 
 def cell_variance(noise: FrameNoise, raw: np.ndarray, area: np.ndarray) -> np.ndarray:
@@ -180,7 +186,8 @@ def read_noise(directory: str | Path) -> dict | None:
     try:
         data = json.loads(path.read_text())
         float(data["entry_sigma"])
-        FrameNoise(tuple(data["levels"]), tuple(data["variances"]), data["frames"], data["pixels"], data["bins"])
+        FrameNoise(tuple(data["levels"]), tuple(data["variances"]), data["frames"], data["pixels"], data["bins"],
+                   float(data["slope"]))
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not an ilt noise record ({exc})") from None
     return data

@@ -27,7 +27,6 @@ rises from one density to the next; ``--plot`` draws error against beams and hou
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import itertools
 import json
 import sys
@@ -41,14 +40,9 @@ FLATLAND_LATTICE, FLATLAND_STRIDES = 384, (8, 4, 2, 1)
 BOX_SIDE, BOX_STRIDES = 12, (3, 2, 1)
 
 
-def _sibling(name: str):
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # the sibling benchmarks
+import bench_refine as refine_bench
 
-
-refine_bench = _sibling("bench_refine")
 coverage_bench = refine_bench.coverage_bench
 
 

@@ -109,7 +109,7 @@ LIT_SIGMAS = 5.0
 #: ... or this many, where 8-connected to such a pixel (:func:`_hysteresis`)
 LIT_LOW_SIGMAS = 2.0
 #: the mean's window (px) on noisy frames
-LIT_SMOOTH = 9
+LIT_SMOOTH = 5
 #: the peak test's thresholds are those of the largest of this many noise-only frames (or of m, when more)
 PEAK_BEAMS = 4096
 
@@ -121,14 +121,14 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
 
     Noise-free frames (no negatives): a pixel is lit where the sum of all beam frames is
     above ``fraction`` x its median at the spot pixels. Noisy frames: where the sum's
-    9 x 9 mean (:data:`LIT_SMOOTH`) is above both that and ``sigmas`` x the mean's noise,
+    5 x 5 mean (:data:`LIT_SMOOTH`) is above both that and ``sigmas`` x the mean's noise,
     or down to
     :data:`LIT_LOW_SIGMAS` / ``sigmas`` of both where it touches such a pixel
     (:func:`_hysteresis`), with the holes the lit region encloses filled: the faint rim
     of the scan's light is not let in or out by the noise, so that a denser scan lights
     what a sparser one did (on the noisy M lattice of benchmarks/noisy_sweep.py the 96-beam
     scan lit 0.880 of the 48-beam scan's pixels when the fraction was a test of single
-    pixels and the mean 3 x 3; 0.997 so). The mean's noise is ``sqrt(m v0) / 9`` with
+    pixels and the mean 3 x 3; 0.997 so). The mean's noise is ``sqrt(m v0) / 5`` with
     ``dark_noise = (v0, m)``, a dark pixel's variance in one frame (the frames' noise
     model, :mod:`ilt.isf.noise`) and the frames summed: so it grows as sqrt(m) exactly.
     Without it, it is measured from the mean's negative values (black-subtracted frames

@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 SUM_FILE = "sum.exr"
 #: per pixel, the largest over the beam frames of its PEAK_SMOOTH x PEAK_SMOOTH mean
 PEAK_FILE = "peak.exr"
-PEAK_SMOOTH = 9
+PEAK_SMOOTH = 5
 
 OVERLAY_FILE = "overlay.png"
 

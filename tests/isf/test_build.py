@@ -104,7 +104,7 @@ def test_the_lit_test_leaves_out_what_only_noise_lights():
     zero-mean noise (sigma 1 a frame, 8 for the sum). The 1e-3 fraction alone keeps half
     the background (its positive noise); the noise test keeps the square and, of the
     background past the mean's reach, only a rim of noise within 4 px (the 2-sigma
-    hysteresis), and measures the 9 x 9 mean's noise (8 / 9). A faint band (4 sigma of the
+    hysteresis), and measures the 5 x 5 mean's noise (8 / 5). A faint band (4 sigma of the
     mean) touching the square is lit (a single 5-sigma cut lit a ninth of it). Noise-free, the
     same sum gives the fraction's mask."""
     from ilt.isf.build import LIT_SMOOTH, lit_mask
@@ -114,7 +114,7 @@ def test_the_lit_test_leaves_out_what_only_noise_lights():
     truth[20:60, 20:60] = 100.0
     noisy = truth + rng.normal(0, 8.0, truth.shape)
     spots = np.array([[30.0, 30.0], [50.0, 50.0]])
-    band = 4 * 8.0 / LIT_SMOOTH          # 4 sigma of the 9 x 9 mean: below the 5 of a lone pixel
+    band = 4 * 8.0 / LIT_SMOOTH          # 4 sigma of the 5 x 5 mean: below the 5 of a lone pixel
     noisy[20:60, 60:66] += band          # a faint band touching the square
     lit, info = lit_mask(noisy, spots, 1e-3)
     background = truth == 0

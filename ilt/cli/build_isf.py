@@ -52,6 +52,9 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
     Writes T.npy (unit columns), scales.npy, samples.csv, cells.exr and fine/ (cell
     sampling), T.png and manifest.json, the directory 'ilt decompose --isf' reads. Flagged beams
     and near-duplicate spots are dropped with a warning and recorded in the manifest.
+    On noisy frames (cell sampling) it also measures their noise against the pixel's level
+    and writes noise.json and T_var.npy, the variance of every entry of T: 'ilt decompose'
+    takes that as T's noise, and the fine fit tells a cell's slope from its noise by it.
 
     Run by hand after 'ilt centroids', this decodes every frame a second time; 'ilt
     run' runs the two stages on frames decoded once (centroids keeps them for this

@@ -38,9 +38,9 @@ from ilt.workspace.options import DECOMPOSE
                    "scenes), compressed (T low-rank off its diagonal to the noise floor, for large m); auto "
                    "picks by structure, size and noise and says why.")
 @click.option("--noise", type=click.FloatRange(min=0), default=None,
-              help="Noise sigma of T relative to its unit columns (default: measured from T's negative "
-                   "entries when it has some); blocks and series treat entries below it as zero, "
-                   "compressed compresses T to it.")
+              help="Noise sigma of T relative to its unit columns (default: the ISF's noise.json, measured "
+                   "from the beam frames by build-isf, else from T's negative entries when it has some); "
+                   "blocks and series treat entries below it as zero, compressed compresses T to it.")
 @click.option("--regularise", is_flag=True,
               help="Denoise T before inverting it: smooth its indirect part along pixels and beams, edge-aware "
                    "(neighbours whose light differs by more than the noise are not averaged), kept when the "

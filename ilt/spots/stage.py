@@ -1,6 +1,8 @@
 """The centroids stage (``ilt centroids``): the spot of every beam of a merged or raw
 capture, in chunks over the pool, with the spots table, the sum of all frames
-(``sum.exr``) and an overlay of the spots on it (``overlay.png``).
+(``sum.exr``), per pixel the largest local mean over the frames (``peak.exr``: what one
+beam lights; both feed build-isf's lit test) and an overlay of the spots on it
+(``overlay.png``).
 """
 
 from __future__ import annotations

@@ -63,7 +63,10 @@ def test_a_brackets_steps_are_followed():
     through them would be 3x off at one end or the other)."""
     rng = np.random.default_rng(2)
     clean, spots = _frames(rng)
-    sd = lambda f: np.sqrt(np.where(f < 150, 1.0 + 0.05 * f, 1.0 + 0.05 * 150 + 0.4 * (f - 150)))  # noqa: E731
+
+    def sd(f):
+        return np.sqrt(np.where(f < 150, 1.0 + 0.05 * f, 1.0 + 0.05 * 150 + 0.4 * (f - 150)))
+
     fit = fit_frame_noise([f + rng.normal(0, 1, f.shape) * sd(np.maximum(f, 0)) for f in clean], spots)
     for level in (10.0, 100.0, 300.0, 400.0):
         assert fit.pixel_variance(np.array([level]))[0] == pytest.approx(float(sd(np.array(level))) ** 2, rel=0.2)

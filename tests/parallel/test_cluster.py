@@ -712,3 +712,58 @@ def test_decompose_with_a_scheduler_writes_the_same_bounces(kernel_T, local_clus
     for name in ("bounces.npy", "residual.npy"):
         assert fingerprint_file(tmp_path / "there" / "photo" / name) == \
             fingerprint_file(tmp_path / "here" / "photo" / name)
+
+
+def test_a_cancelled_chunk_s_late_failure_is_not_logged_again():
+    """After a stage fails on one chunk, ilt cancels the others; distributed then sets a
+    cancelled chunk's failure on its concurrent future without checking, and tornado
+    logged the InvalidStateError with a traceback: a second message after ilt's one line
+    (about one run in five of the worker-without-storage test above). Driven here with
+    distributed's own _cascade_future on a cancelled future: logged without the filter,
+    not with it."""
+    import asyncio
+    import concurrent.futures as cf
+    import logging
+
+    from distributed.cfexecutor import _cascade_future
+    from tornado.ioloop import IOLoop
+
+    from ilt.parallel.cluster import _CancelledCascade, _quiet_dask
+
+    class FailedTask:   # what a Dask future of a failed task gives _cascade_future
+        status = "error"
+
+        async def _result(self, raiseit=False):
+            try:
+                raise ValueError("beam 4: a bad frame")
+            except ValueError as exc:
+                return type(exc), exc, exc.__traceback__
+
+    records = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append(record)
+
+    tornado = logging.getLogger("tornado.application")
+    handler = Keep()
+    tornado.addHandler(handler)
+    saved = [f for f in tornado.filters if isinstance(f, _CancelledCascade)]
+    for f in saved:
+        tornado.removeFilter(f)
+
+    async def cascade():
+        future = cf.Future()
+        future.cancel()
+        IOLoop.current().add_callback(_cascade_future, FailedTask(), future)
+        await asyncio.sleep(0.2)
+
+    try:
+        asyncio.run(cascade())
+        assert len(records) == 1 and isinstance(records[0].exc_info[1], cf.InvalidStateError)
+        records.clear()
+        _quiet_dask()
+        asyncio.run(cascade())
+        assert records == []
+    finally:
+        tornado.removeHandler(handler)

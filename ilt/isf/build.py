@@ -151,10 +151,9 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     noise = 0.0
     if dark_noise is not None or np.count_nonzero(frame_sum < 0) >= 16:
         smooth = uniform_filter(frame_sum, size=LIT_SMOOTH, mode="nearest")
-        negative = smooth[smooth < 0]
         if dark_noise is not None:   # a dark pixel's variance in one frame, and the frames summed
             noise = float(np.sqrt(dark_noise[0] * dark_noise[1])) / LIT_SMOOTH
-        elif negative.size >= 16:
+        elif (negative := smooth[smooth < 0]).size >= 16:
             noise = float(np.sqrt(np.mean(negative**2)))
         if noise > 0:
             # both tests on the smoothed sum, both with the hysteresis: the relative one on
@@ -376,8 +375,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                     raise BuildError(f"beam {plan[j]} ({hdr.files[plan[j]]}): its image is zero at every sample")
                 T[:, done:done + b] = raw / norms
                 # each entry's variance: its cell's pixels at the cell's mean level (ilt.isf.noise)
-                variance = None if entry_noise is None else cell_variance(noise, raw, area)
+                variance = None
                 if entry_noise is not None:
+                    variance = cell_variance(noise, raw, area)
                     entry_noise.add(done, variance, norms)
                 if accumulator is not None:
                     accumulator.add(done, block[m:-m].reshape(terms, m, b), raw, block[-m:], norms, variance)

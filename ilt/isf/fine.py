@@ -199,6 +199,8 @@ class FineAccumulator:
         self.total += variation.sum(axis=1)
         self.explained += np.einsum("aij,iab,bij->i", coefficients, self.gram, coefficients)
         if self.noise_aware:
+            if variance is None:
+                raise ValueError("a noise-aware fine fit needs each block's cell variances")
             # noise of variance v per pixel puts (n - 1) v into a cell's variation about its
             # mean and K v (a chi-square of K terms: spread 2 K v^2) into what K terms explain
             K, n = coefficients.shape[0], self.area[:, None]

@@ -23,7 +23,7 @@ over the scan), by :func:`fit_frame_noise`:
 An entry of T is a cell sum of one frame's pixels, so its variance is the cell sum of
 ``v(X)``, taken with every pixel at the cell's mean level (:func:`cell_variance`: no pass
 over the pixels; the interreflected light varies little inside a cell, and a per-pixel
-integral cost 1.4x build-isf's time), written as ``T_var.npy``
+integral cost 2.4x build-isf's time), written as ``T_var.npy``
 (float32, the variance of T's unit-column entries), and ``noise.json`` records the knots
 and ``entry_sigma``, the RMS noise of T's entries off its diagonal (the interreflected
 light that the inversion amplifies and that regularisation smooths; the diagonal, a

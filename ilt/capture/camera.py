@@ -78,10 +78,14 @@ def make_sim_camera(cfg, plan_steps: np.ndarray, layout: tuple[int, int],
                     pointing: Callable[[], tuple[float, float, bool]]) -> SimCamera:
     """The simulated camera for a [camera] table (backend = "sim").
 
-    ``plan_steps`` (m, 2) are the beam positions; ``pointing()`` says where the unit
-    really points (pan, tilt in steps) and whether the laser is on. The beam nearest to
-    that position is rendered (:func:`ilt.sim.render.render_scene`), scaled by
-    ``radiance_scale``, and written through :func:`ilt.sim.sensor.write_dng`.
+    ``plan_steps`` (m, 2) are the beam positions of the scene's plan (a refined scan's
+    added beams are not among them); ``pointing()`` says where the unit really points
+    (pan, tilt in steps) and whether the laser is on. At a plan beam's position (within
+    half a step) that beam is rendered (:func:`ilt.sim.render.render_scene`); elsewhere,
+    on a line or grid plan, the beam lands between the plan's beams as the angles say
+    (:meth:`~ilt.sim.render.RenderedScene.beam_between`, through the plan's affine map
+    from layout position to steps), on a list plan at the nearest beam. Scaled by
+    ``radiance_scale``, written through :func:`ilt.sim.sensor.write_dng`.
     """
     from ilt.sim.render import render_scene
     from ilt.sim.sensor import write_dng
@@ -92,24 +96,50 @@ def make_sim_camera(cfg, plan_steps: np.ndarray, layout: tuple[int, int],
         raise ConfigError(f"[camera] scene {cfg.scene!r} renders {scene.m} beams in layout {list(scene.layout)}, "
                           f"but the plan has {m} in {list(layout)}")
     sensor = sim_sensor(scene)
-    frames: dict[int, np.ndarray] = {}
+    to_position = _layout_position(np.asarray(plan_steps, dtype=np.float64), layout)
+    frames: dict = {}
 
     def render() -> np.ndarray:
         pan, tilt, laser = pointing()
         out = np.zeros((sensor.height, sensor.width))
         if laser:
-            j = int(np.argmin(np.hypot(plan_steps[:, 0] - pan, plan_steps[:, 1] - tilt)))
-            if j not in frames:
+            distance = np.hypot(plan_steps[:, 0] - pan, plan_steps[:, 1] - tilt)
+            j = int(np.argmin(distance))
+            key = j if distance[j] < 0.5 or to_position is None else (float(pan), float(tilt))
+            if key not in frames:
                 frames.clear()  # one beam at a time: memory does not grow with m
-                frames[j] = scene.beam_frame(j).astype(np.float64) * cfg.radiance_scale
+                beam = scene.beam_frame(j) if isinstance(key, int) else \
+                    scene.beam_between(to_position(np.array([pan, tilt], dtype=np.float64))).beam_frame(0)
+                frames[key] = beam.astype(np.float64) * cfg.radiance_scale
             h, w = scene.frame_shape
-            out[:h, :w] = frames[j]
+            out[:h, :w] = frames[key]
         return out
 
     def write_raw(path, radiance, exposure_time, f_number, rng):
         write_dng(path, radiance, exposure_time, f_number, sensor, rng)
 
     return SimCamera(render, write_raw, f"{sensor.make} {sensor.model}", cfg.seed, cfg.faults)
+
+
+def _layout_position(steps: np.ndarray, layout) -> Callable[[np.ndarray], np.ndarray] | None:
+    """steps (2,) -> fractional layout position (col, row), from the affine map the plan's
+    beams follow (a line or grid of evenly spaced angles); None when they follow none
+    (a list plan, or a single beam)."""
+    rows, cols = (int(n) for n in layout)
+    if len(steps) < 2 or rows * cols != len(steps):
+        return None
+    index = np.arange(len(steps))
+    design = np.column_stack([np.ones(len(steps)), index % cols, index // cols])
+    coef, *_ = np.linalg.lstsq(design, steps, rcond=None)
+    if np.abs(design @ coef - steps).max() > 1.0:   # not evenly spaced: no map to invert
+        return None
+    offset, linear = coef[0], coef[1:].T            # steps = offset + linear @ (col, row)
+    inverse = np.linalg.pinv(linear, rcond=1e-9)
+
+    def position(at: np.ndarray) -> np.ndarray:
+        return inverse @ (at - offset)
+
+    return position
 
 
 def sim_sensor(scene):

@@ -44,7 +44,7 @@ from .config import ConfigError, Exposure, RigConfig
 from .emulator import LaserEmulator, PTUEmulator
 from .errors import CameraError, RigError
 from .laser import Laser, laser_off, open_laser
-from .plan import Plan, check_limits, make_plan, to_steps
+from .plan import Plan, check_limits, extend_plan, make_plan, to_steps
 from .ptu import PanTilt
 
 log = logging.getLogger(__name__)
@@ -103,14 +103,15 @@ class Rig:
 
 
 @contextlib.contextmanager
-def open_rig(cfg: RigConfig, pointing: Callable | None = None):
+def open_rig(cfg: RigConfig, pointing: Callable | None = None, added=()):
     """Start (emulators,) the pan-tilt unit, the laser (switched off first) and the camera.
 
     ``pointing()`` -> (pan, tilt steps, laser on) is the truth the simulated camera
     renders; with ``port = "emulator"`` it is the emulator's state, else (an external
-    unit) the position read back and the laser state acknowledged.
+    unit) the position read back and the laser state acknowledged. ``added``: the beams
+    of refine passes appended to the config's plan (:func:`~ilt.capture.plan.extend_plan`).
     """
-    plan = make_plan(cfg.plan)
+    plan = extend_plan(make_plan(cfg.plan), added)
     emulators: list = []
     ptu = laser = camera = None
     try:
@@ -137,7 +138,7 @@ def open_rig(cfg: RigConfig, pointing: Callable | None = None):
             def pointing():
                 pan, tilt = ptu.position or (np.nan, np.nan)
                 return pan, tilt, bool(laser.state)
-        camera = open_camera(cfg, steps, plan.layout, pointing)
+        camera = open_camera(cfg, steps[:plan.base_m], plan.base_layout or plan.layout, pointing)
         yield Rig(ptu, laser, camera, plan, steps, emulators)
     finally:
         laser_off(laser)
@@ -211,25 +212,29 @@ class BeamResult:
 
 
 def capture(cfg: RigConfig, output: str | os.PathLike | None = None, *, resume: bool = False,
-            pointing: Callable | None = None, on_beam: Callable[[BeamResult, int, int], None] | None = None) -> dict:
+            pointing: Callable | None = None, on_beam: Callable[[BeamResult, int, int], None] | None = None,
+            added=()) -> dict:
     """Run (or resume) a scan into ``output`` (default: the config's). Returns a summary.
 
-    Raises RigError / ConfigError / OSError with a one-line reason; the laser is off
-    and every frame already written stays, logged, whatever happens.
+    ``added``: the beams of refine passes appended to the config's plan (list of (k, 2)
+    angles in its units, :func:`~ilt.capture.plan.extend_plan`). With ``resume``, a plan
+    that extends the capture's (the same beams first, then more; the same bracket, dark
+    frame and camera) is shot as the next pass: logged as an ``extend`` event, the
+    beams already taken kept. Raises RigError / ConfigError / OSError with a one-line
+    reason; the laser is off and every frame already written stays, logged, whatever
+    happens.
     """
     directory = Path(output or cfg.output)
     prepare_output(directory, resume)
     started = time.monotonic()
-    with open_rig(cfg, pointing) as rig:
+    with open_rig(cfg, pointing, added) as rig:
         fingerprint = scan_fingerprint(cfg, rig.steps)
+        event = "resume" if resume else "start"
         if resume:
-            first = next((r for r in read_log(directory / LOG_NAME) if r["event"] == "start"), None)
-            if first is not None and first.get("fingerprint") != fingerprint:
-                raise ConfigError(f"{directory}: the config's plan, bracket or camera differ from the capture's; "
-                                  "resume with the config it was started with")
+            event = _resume_event(directory, cfg, rig.steps, fingerprint)
         journal = CaptureLog(directory / LOG_NAME)
         try:
-            journal.append("resume" if resume else "start", fingerprint=fingerprint, config=cfg.as_dict(),
+            journal.append(event, fingerprint=fingerprint, config=cfg.as_dict(),
                            ptu=rig.ptu.info, camera=rig.camera.describe(), plan=rig.plan.as_dict())
             results = _scan(cfg, rig, directory, journal, on_beam)
         except BaseException as exc:
@@ -260,6 +265,23 @@ def capture(cfg: RigConfig, output: str | os.PathLike | None = None, *, resume: 
             "fingerprint": fingerprint,
         })
     return summary
+
+
+def _resume_event(directory: Path, cfg: RigConfig, steps: np.ndarray, fingerprint: str) -> str:
+    """"resume" when the plan is the capture's latest, "extend" when it appends beams to
+    it; ConfigError naming the directory otherwise."""
+    latest = None
+    for r in read_log(directory / LOG_NAME):
+        if r["event"] in ("start", "resume", "extend") and "fingerprint" in r:
+            latest = r
+    if latest is None or latest["fingerprint"] == fingerprint:
+        return "resume"
+    taken = len((latest.get("plan") or {}).get("targets", ()))
+    if 0 < taken < len(steps) and scan_fingerprint(cfg, steps[:taken]) == latest["fingerprint"]:
+        log.info("%s: %d beams taken; extending the scan by %d", directory, taken, len(steps) - taken)
+        return "extend"
+    raise ConfigError(f"{directory}: the config's plan, bracket or camera differ from the capture's; "
+                      "resume with the config it was started with")
 
 
 def _scan(cfg: RigConfig, rig: Rig, directory: Path, journal: CaptureLog, on_beam) -> list[BeamResult]:

@@ -24,14 +24,44 @@ class Plan:
     units: str
     targets: np.ndarray
     layout: tuple[int, int]
+    #: a refined scan (:func:`extend_plan`): the beams at the end of each pass, the first
+    #: being the configured plan's; empty for a plan as configured
+    passes: tuple[int, ...] = ()
+    #: the configured plan's layout, when ``passes`` appended beams to it
+    base_layout: tuple[int, int] | None = None
 
     @property
     def m(self) -> int:
         return len(self.targets)
 
+    @property
+    def base_m(self) -> int:
+        """The configured plan's beams (the first ``base_m`` targets)."""
+        return self.passes[0] if self.passes else self.m
+
     def as_dict(self) -> dict:
-        return {"kind": self.kind, "units": self.units, "layout": list(self.layout),
-                "targets": self.targets.tolist()}
+        d = {"kind": self.kind, "units": self.units, "layout": list(self.layout), "targets": self.targets.tolist()}
+        if self.passes:
+            d["passes"] = list(self.passes)
+            d["base_layout"] = list(self.base_layout)
+        return d
+
+
+def extend_plan(plan: Plan, added) -> Plan:
+    """``plan`` with the beams of refine passes appended, in order: ``added`` is a list of
+    (k, 2) (pan, tilt) arrays in the plan's units (rounded to whole steps when its units
+    are steps). The result is a strip (layout 1 x m: the added beams are not on the
+    plan's grid); ``passes`` and ``base_layout`` say what came from where."""
+    added = [np.asarray(a, dtype=np.float64).reshape(-1, 2) for a in added]
+    if not added:
+        return plan
+    if plan.units == "steps":
+        added = [np.rint(a) for a in added]
+    targets = np.concatenate([plan.targets, *added])
+    if not np.all(np.isfinite(targets)):
+        raise ConfigError("a refine pass has a non-finite angle")
+    passes = tuple(int(n) for n in np.cumsum([plan.m, *(len(a) for a in added)]))
+    return Plan(plan.kind, plan.units, targets, (1, len(targets)), passes, tuple(plan.layout))
 
 
 def make_plan(cfg: PlanConfig) -> Plan:

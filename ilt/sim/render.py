@@ -192,6 +192,43 @@ class RenderedScene:
         scattered = self.radiosity(direct) - direct
         return (self.spot_image(j) + self.to_frame(scattered)).astype(np.float32)
 
+    def beam_between(self, position) -> "RenderedScene":
+        """The scene with one beam landing at a fractional plan position ``(col, row)``
+        (``(col,)`` on a line): between the plan's beams, as a pan-tilt unit aimed between
+        their angles puts it. Inside a face the point, footprint and spot centre are the
+        bilinear blend of the (up to 4) neighbouring beams'; where they span a fold or a
+        gap (different facets) the beam lands where the nearest plan beam does. Shares the
+        exact solve with this scene (``beam_frame(0)`` of the result is the frame)."""
+        rows, cols = self.layout
+        pos = np.asarray(position, dtype=np.float64).ravel()
+        col, row = float(pos[0]), float(pos[1]) if pos.size > 1 and rows > 1 else 0.0
+        if not (np.isfinite(col) and np.isfinite(row)):
+            raise ValueError(f"beam position {list(pos)} is not finite")
+        corners, weights = [], []
+        for axis_pos, n in ((row, rows), (col, cols)):
+            lo = int(np.clip(np.floor(axis_pos), 0, max(n - 2, 0)))
+            t = float(np.clip(axis_pos - lo, 0.0, 1.0)) if n > 1 else 0.0
+            corners.append((lo, min(lo + 1, n - 1)))
+            weights.append((1.0 - t, t))
+        beams, w = [], []
+        for (r, wr) in zip(corners[0], weights[0]):
+            for (c, wc) in zip(corners[1], weights[1]):
+                if wr * wc > 0:
+                    beams.append(r * cols + c)
+                    w.append(wr * wc)
+        beams, w = np.asarray(beams), np.asarray(w)
+        if len(np.unique(self.target_facet[beams])) > 1:   # across a fold: the nearest beam's point
+            beams, w = beams[[int(np.argmax(w))]], np.ones(1)
+        blend = w / w.sum()
+        one = replace(self, targets=(blend @ self.targets[beams])[None],
+                      target_facet=self.target_facet[beams[:1]], centres=(blend @ self.centres[beams])[None],
+                      layout=(1, 1), spot_sigma=np.array([blend @ self.spot_sigma[beams]]),
+                      image_sigma=np.array([blend @ self.image_sigma[beams]]))
+        for name in ("_solve", "pixel_average"):   # the geometry's: computed once, shared
+            if name in self.__dict__:
+                one.__dict__[name] = self.__dict__[name]
+        return _true_centres(one)
+
     # ------------------------------------------------------------------ photos
 
     def photo(self, kind: str, n_bounces: int = 8, **params) -> tuple[np.ndarray, np.ndarray]:

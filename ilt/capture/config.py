@@ -166,7 +166,7 @@ def load_config(path: str | Path) -> RigConfig:
 def parse_config(raw: dict, where: str = "<config>") -> RigConfig:
     # the stage sections after capture are read by `ilt run` (ilt.workspace.pipeline)
     known = {"output", "ptu", "laser", "camera", "bracket", "dark", "plan",
-             "merge", "centroids", "build-isf", "photos", "decompose", "cluster"}
+             "merge", "centroids", "build-isf", "photos", "decompose", "cluster", "refine"}
     for key in raw:
         if key not in known:
             raise ConfigError(f"{where}: unknown section [{key}] (known: {', '.join(sorted(known))})")

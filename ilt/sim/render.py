@@ -217,17 +217,34 @@ class RenderedScene:
                     beams.append(r * cols + c)
                     w.append(wr * wc)
         beams, w = np.asarray(beams), np.asarray(w)
-        if len(np.unique(self.target_facet[beams])) > 1:   # across a fold: the nearest beam's point
-            beams, w = beams[[int(np.argmax(w))]], np.ones(1)
         blend = w / w.sum()
-        one = replace(self, targets=(blend @ self.targets[beams])[None],
-                      target_facet=self.target_facet[beams[:1]], centres=(blend @ self.centres[beams])[None],
-                      layout=(1, 1), spot_sigma=np.array([blend @ self.spot_sigma[beams]]),
+        target, facet = blend @ self.targets[beams], self.target_facet[beams[:1]]
+        sigma = np.array([blend @ self.spot_sigma[beams]])
+        if len(np.unique(self.target_facet[beams])) > 1:
+            if self.extruded:   # flatland: the surface the camera column between them sees
+                point, facet, sigma = self._flatland_point(float(target[0]))
+                target = point if point is not None else self.targets[beams[int(np.argmax(w))]]
+            if not self.extruded or point is None:   # the box across faces: the nearest beam's point
+                beams, blend = beams[[int(np.argmax(w))]], np.ones(1)
+                target, facet, sigma = self.targets[beams[0]], self.target_facet[beams], self.spot_sigma[beams]
+        one = replace(self, targets=np.asarray(target, dtype=np.float64)[None], target_facet=np.asarray(facet),
+                      centres=(blend @ self.centres[beams])[None], layout=(1, 1), spot_sigma=np.asarray(sigma),
                       image_sigma=np.array([blend @ self.image_sigma[beams]]))
         for name in ("_solve", "pixel_average"):   # the geometry's: computed once, shared
             if name in self.__dict__:
                 one.__dict__[name] = self.__dict__[name]
         return _true_centres(one)
+
+    def _flatland_point(self, x: float):
+        """The topmost surface point at ``x`` (what a flatland beam between facets hits),
+        its facet (1,) and footprint sigma (1,) (a plan beam's on that facet: the slope
+        sets it); (None, ..) when no plan beam shares the facet or x sees no surface."""
+        patch, point = _flatland_topmost(self.geometry, np.array([[x]]))
+        patch = int(patch[0, 0])
+        on = np.flatnonzero(self.target_facet == self.geometry.facet[patch]) if patch >= 0 else []
+        if len(on) == 0:
+            return None, self.target_facet[:1], self.spot_sigma[:1]
+        return point[0, 0], self.target_facet[on[:1]], self.spot_sigma[on[:1]]
 
     # ------------------------------------------------------------------ photos
 

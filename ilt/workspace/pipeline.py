@@ -12,10 +12,17 @@ keys are the long options of the stage commands (:mod:`ilt.workspace.options`, d
     [photos]     sim = ["flashlight"] # simulated rig: photos under these illuminations
                  files = ["a.exr"]    # and/or EXR photos (paths relative to the config)
     [decompose]  bounces = 8          # ilt decompose --bounces
+    [refine]     passes = 2           # after the scan: refine -> capture the new beams -> ...
+                 beams = 16           # new beams a pass (or hours = H over all passes)
     [cluster]    scheduler = "tls://head:8786"  # ilt run --scheduler (docs/cluster.md)
                  ca = "~/.dask/ca.pem"          # TLS: the cluster's CA, this client's
                  cert = "~/.dask/cert.pem"      # certificate and key (or Dask's
                  key = "~/.dask/key.pem"        # distributed.comm.tls configuration)
+
+With ``[refine] passes`` the scan grows in passes (:mod:`ilt.workspace.passes`,
+docs/refine.md): capture to build-isf, ``ilt refine`` into ``passes/pass-P/``, the new
+beams appended to ``capture/``, merge to build-isf again; photos and decompose once, on
+the last pass.
 
 Photos on the simulated rig are *captured*: the simulated camera shoots each photo's
 bracket of DNG files under the illumination (same bracket, sensor and noise as the
@@ -48,6 +55,7 @@ from ilt.io.stage import (
     changed_outputs,
     fingerprint_input,
     input_evidence,
+    plain,
     read_record,
     run_stage,
     stage_state,
@@ -57,6 +65,17 @@ from ilt.io.staged import staged_directory
 from ilt.io.workspace_dirs import STAGE_DIRS, Workspace
 from ilt.parallel.cluster import ClusterConfig
 from ilt.workspace.options import BUILD_ISF, CENTROIDS, DECOMPOSE, MERGE, StageOption
+from ilt.workspace.passes import (
+    Pass,
+    RefineConfig,
+    completed_passes,
+    finished,
+    parse_refine,
+    passes_dir,
+    passes_parameter,
+    run_refine_pass,
+    write_landing,
+)
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +99,8 @@ class RunConfig:
     photo_files: tuple[Path, ...] = ()
     #: [cluster]: where the per-beam stages run and how to reach it (ilt.parallel.cluster)
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
+    #: [refine]: passes of ilt refine -> capture after the first scan (ilt.workspace.passes)
+    refine: RefineConfig = field(default_factory=RefineConfig)
 
 
 def stage_options(options: dict[str, StageOption], section: dict, where: str) -> dict:
@@ -133,6 +154,7 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
         photo_kinds=kinds,
         photo_files=tuple(path.parent / f for f in photos.get("files", ())),
         cluster=_cluster(raw.get("cluster", {}), path),
+        refine=parse_refine(raw.get("refine", {}), f"{path}: [refine]"),
     )
 
 
@@ -174,10 +196,30 @@ def fingerprinted(options: dict) -> dict:
 # ---------------------------------------------------------------------- the stages
 
 
-def capture_parameters(rig: RigConfig) -> dict:
-    """What a capture depends on: the beams, the bracket, the dark frame, the camera."""
+def capture_parameters(rig: RigConfig, passes: list[Pass] = ()) -> dict:
+    """What a capture depends on: the beams, the bracket, the dark frame, the camera, and
+    the refine passes whose beams it holds (:func:`ilt.workspace.passes.passes_parameter`)."""
     d = rig.as_dict()
-    return {k: d[k] for k in ("plan", "bracket", "dark", "camera")}
+    out = {k: d[k] for k in ("plan", "bracket", "dark", "camera")}
+    if passes:
+        out["passes"] = passes_parameter(list(passes))
+    return out
+
+
+def extends(directory: Path, parameters: dict) -> bool:
+    """Whether the capture's run record is of an earlier pass of the same scan: the same
+    parameters but fewer refine passes, each the same (its beams are a prefix of the
+    ones asked for: the capture resumes and shoots the rest)."""
+    record = read_record(directory)
+    if record is None:
+        return False
+    old, new = dict(record.get("parameters", {})), plain_parameters(parameters)
+    before, after = old.pop("passes", []), new.pop("passes", [])
+    return old == new and len(before) < len(after) and after[:len(before)] == before
+
+
+def plain_parameters(parameters: dict) -> dict:
+    return dict(plain(parameters))
 
 
 def merge_options(options: dict):
@@ -213,7 +255,8 @@ def no_progress(length: int, label: str):
     return contextlib.nullcontext(lambda n=1: None)
 
 
-def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=None) -> list[Stage]:
+def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=None,
+                passes: list[Pass] | None = None) -> list[Stage]:
     """The stages of a run in order (photos and decompose only when there are photos).
 
     ``progress(length, label)``: a context manager yielding ``update(n)``, called with the
@@ -221,7 +264,8 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     line every tenth in a log). ``executor``: where merge, centroids and build-isf
     run their beams and the compressed solver its blocks (a cluster's,
     :func:`ilt.parallel.cluster.executor_for`), else each stage's process pool of its
-    ``workers`` (the solver: threads of this process).
+    ``workers`` (the solver: threads of this process). ``passes``: the refine passes
+    whose beams the capture holds (default: those done in the workspace).
     """
     from ilt.capture.plan import planned_beams
     from ilt.decompose.stage import decompose, default_cache_dir, not_decomposed
@@ -245,7 +289,8 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     # run_pipeline removes the directory before the first stage and after the last, and
     # a failed centroids stage ends the run before build-isf
     scratch = ws.root / SCRATCH_DIR
-    beams = planned_beams(cfg.rig.plan)
+    passes = completed_passes(ws) if passes is None else passes
+    beams = planned_beams(cfg.rig.plan) + sum(p.beams for p in passes)
 
     def make_merge():
         with progress(beams, "merge") as update:
@@ -281,7 +326,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
                               **decompose_options)
 
     stages = [
-        Stage("capture", d["capture"], capture_parameters(cfg.rig), {}),
+        Stage("capture", d["capture"], capture_parameters(cfg.rig, passes), {}),
         Stage("merge", d["merge"], fingerprinted(m), {"capture": d["capture"]}, make_merge),
         Stage("centroids", d["centroids"], fingerprinted(c), {"hdr": d["merge"]}, make_centroids),
         Stage("build-isf", d["build-isf"], fingerprinted(b), {"hdr": d["merge"], "spots": d["centroids"]},
@@ -453,8 +498,28 @@ def _by_hand_state(stage: Stage) -> StageState:
 
 
 def workspace_status(ws: Workspace, cfg: RunConfig, verify: str | None = None) -> list[StageState]:
-    """Each stage's state against ``cfg`` (:func:`assess_stages`)."""
-    return [a.state for a in assess_stages(plan_stages(ws, cfg), verify)]
+    """Each stage's state against ``cfg`` (:func:`assess_stages`); with [refine] passes,
+    a "refine" line after build-isf: the passes done and the beams each added."""
+    passes = completed_passes(ws)
+    states = [a.state for a in assess_stages(plan_stages(ws, cfg, passes=passes), verify)]
+    if cfg.refine.passes or passes:
+        states.insert(4, refine_state(ws, cfg, passes))
+    return states
+
+
+def refine_state(ws: Workspace, cfg: RunConfig, passes: list[Pass]) -> StageState:
+    """The refine passes as a stage's state: done when no pass is left to run."""
+    from ilt.workspace.passes import read_landing
+
+    beams = " + ".join(str(n) for n in [planned_beams_of(cfg), *(p.beams for p in passes)])
+    said = f"pass {len(passes)} of {cfg.refine.passes} ({beams} beams)"
+    landing = (read_landing(ws) or {}).get("passes", [])
+    found = [x for x in landing if x.get("median_px") is not None]
+    if found:
+        said += "; landing " + ", ".join(f"{x['median_px']:.2f}" for x in found) + " px (median a pass)"
+    if len(passes) > cfg.refine.passes:
+        return StageState("refine", str(passes_dir(ws)), STALE, said + ": more passes than the config asks")
+    return StageState("refine", str(passes_dir(ws)), DONE if finished(cfg.refine, passes) else MISSING, said)
 
 
 def check_unchanged(assessed: list[Assessment]) -> None:
@@ -466,6 +531,9 @@ def check_unchanged(assessed: list[Assessment]) -> None:
         if a.state.state == CHANGED:
             raise StageError(f"{a.state.directory}: {a.state.reason}")
 
+
+#: the directory of the refine passes, as messages name it
+PASSES_NAME = "passes"
 
 #: beside WORKSPACE/rig.toml: the fingerprint of the config `ilt run` last copied there
 INSTALLED = ".rig.toml.installed"
@@ -524,15 +592,23 @@ def check_capture(stage: Stage, force: bool, state: StageState | None = None) ->
     """The capture's state (``state`` when the caller found it); StageError when the scan
     differs from the config and not ``force``."""
     state = state or stage_state(stage.directory, "capture", stage.parameters)
-    if state.state == STALE and not force:
+    if state.state == STALE and not force and not extends(stage.directory, stage.parameters):
+        held = len((read_record(stage.directory) or {}).get("parameters", {}).get("passes", []))
+        asked = len(stage.parameters.get("passes", []))
+        if held > asked:
+            raise StageError(f"{stage.directory}: holds the beams of {held} refine pass(es), the workspace's "
+                             f"{PASSES_NAME}/ and config give {asked} (raise [refine] passes, restore the "
+                             "pass directories, or use --force to move the scan aside and scan again)")
         raise StageError(f"{stage.directory}: {state.reason}; the scan differs from the config "
                          "(use --force to move it aside and scan again)")
     return state
 
 
-def run_capture(stage: Stage, state: StageState, cfg: RunConfig, force: bool, progress=no_progress) -> bool:
-    """The capture stage, in ``state`` (:func:`check_capture`): resumed when interrupted;
-    a scan that differs from the config is moved aside (never deleted) only with ``force``."""
+def run_capture(stage: Stage, state: StageState, cfg: RunConfig, force: bool, progress=no_progress,
+                passes: list[Pass] = ()) -> bool:
+    """The capture stage, in ``state`` (:func:`check_capture`): resumed when interrupted,
+    extended by the beams of ``passes`` it does not hold yet; a scan that differs from
+    the config is moved aside (never deleted) only with ``force``."""
     from ilt.capture.camera import check_sim_camera
 
     if state.done and not force:
@@ -541,48 +617,90 @@ def run_capture(stage: Stage, state: StageState, cfg: RunConfig, force: bool, pr
             write_record(stage.directory, "capture", stage.parameters, {})
         return False
     check_sim_camera(cfg.rig)   # an unknown scene or one too large: refused before anything moves
-    if state.state == STALE or (state.done and force):
+    extending = state.state == STALE and not force and extends(stage.directory, stage.parameters)
+    if (state.state == STALE and not extending) or (state.done and force):
         k = 1
         while (aside := stage.directory.with_name(f"{stage.directory.name}.previous-{k}")).exists():
             k += 1
         os.replace(stage.directory, aside)
         log.warning("capture: the previous scan is kept in %s", aside)
     resume = (stage.directory / LOG_NAME).exists()
-    log.info("capture: %s (%s)", "resuming" if resume else "scanning", state.reason or state.state)
+    log.info("capture: %s (%s)", f"refine pass {len(passes)}: adding its beams" if extending else
+             "resuming" if resume else "scanning", state.reason or state.state)
 
     from ilt.capture.plan import planned_beams
 
-    with progress(planned_beams(cfg.rig.plan), "capture") as update:
+    with progress(planned_beams(cfg.rig.plan) + sum(p.beams for p in passes), "capture") as update:
         def on_beam(result, done, total):
             log.debug("capture: beam %d (%d/%d) %.1f s", result.beam, done, total, result.seconds)
             update(1)
 
-        capture(cfg.rig, stage.directory, resume=resume, on_beam=on_beam)
+        capture(cfg.rig, stage.directory, resume=resume, on_beam=on_beam, added=[p.angles for p in passes])
     write_record(stage.directory, "capture", stage.parameters, {})
     return True
 
 
 def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False, progress=no_progress,
                  executor=None) -> list[dict]:
-    """Run every stage that is not up to date, in order. Returns one summary per stage.
+    """Run every stage that is not up to date, in order, and the refine passes the config
+    asks for (:mod:`ilt.workspace.passes`). Returns one summary per stage run or skipped.
     ``progress``, ``executor``: as :func:`plan_stages` takes them."""
-    stages = plan_stages(ws, cfg, progress, executor)
+    passes = [] if force else completed_passes(ws)
+    if len(passes) > cfg.refine.passes:
+        raise StageError(f"{passes_dir(ws)}: holds {len(passes)} refine pass(es), the config asks for "
+                         f"{cfg.refine.passes} (raise [refine] passes, or use --force to scan again)")
+    summaries = _run_pass(ws, cfg, passes, force, progress, executor)
+    while not finished(cfg.refine, passes):
+        passes.append(run_refine_pass(ws, cfg.refine, cfg.rig, passes))
+        summaries.append({"stage": "refine", "directory": str(passes[-1].directory), "ran": True,
+                          "pass": len(passes), "beams": passes[-1].beams})
+        summaries += _run_pass(ws, cfg, passes, False, progress, executor)
+    return summaries
+
+
+def _run_pass(ws: Workspace, cfg: RunConfig, passes: list[Pass], force: bool, progress, executor) -> list[dict]:
+    """One pass of the run: the stages up to build-isf, and the rest when no refine pass
+    follows (the landing of the passes' beams written after)."""
+    stages = plan_stages(ws, cfg, progress, executor, passes=passes)
+    if not finished(cfg.refine, passes):
+        stages = stages[:4]
     # before the config is installed: a refused run changes nothing
     # --force writes every stage again (the scan moved aside): nothing is built on, no state kept
     assessed = None if force else assess_stages(stages, verify="quick")
     capture_state = check_capture(stages[0], force, assessed[0].state if assessed else None)
     if assessed:
         check_unchanged(assessed)
+    if force and not passes:
+        aside = _set_aside_passes(ws)
+        if aside:
+            log.warning("refine: the previous passes are kept in %s", aside)
     install_config(ws, cfg)
     _remove_scratch(ws)  # frames a killed run kept
     try:
-        return _run_stages(stages, capture_state, assessed, cfg, force, progress)
+        summaries = _run_stages(stages, capture_state, assessed, cfg, force, progress, passes)
     finally:
         _remove_scratch(ws)
+    if passes and any(s["ran"] for s in summaries) and stages[3].directory.joinpath(MANIFEST).is_file():
+        write_landing(ws, passes, planned_beams_of(cfg))
+    for s in summaries:
+        s["pass"] = len(passes)
+    return summaries
+
+
+def planned_beams_of(cfg: RunConfig) -> int:
+    from ilt.capture.plan import planned_beams
+
+    return planned_beams(cfg.rig.plan)
+
+
+def _set_aside_passes(ws: Workspace):
+    from ilt.workspace.passes import set_aside
+
+    return set_aside(ws)
 
 
 def _run_stages(stages: list[Stage], capture_state: StageState, assessed: list[Assessment] | None,
-                cfg: RunConfig, force: bool, progress=no_progress) -> list[dict]:
+                cfg: RunConfig, force: bool, progress=no_progress, passes: list[Pass] = ()) -> list[dict]:
     """Run the stages in order. Each stage's state is found once: the assessment made
     before the run holds until a stage runs (its outputs are the next stages' inputs);
     from then on each stage is judged as its turn comes."""
@@ -591,7 +709,7 @@ def _run_stages(stages: list[Stage], capture_state: StageState, assessed: list[A
     for k, stage in enumerate(stages):
         t0 = time.monotonic()
         if stage.name == "capture":
-            ran = run_capture(stage, capture_state, cfg, force, progress)
+            ran = run_capture(stage, capture_state, cfg, force, progress, passes)
         else:
             state, inputs = (assessed[k].state, assessed[k].inputs) if known else (None, None)
             if stage.made_by_hand():

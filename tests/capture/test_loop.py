@@ -20,11 +20,11 @@ from tests import ROOT
 from tests.capture_helpers import frame_hashes, pointing_of, small_config, toml_text
 
 
-def run_on(emu, cfg, out, resume=False, laser_emu=None):
+def run_on(emu, cfg, out, resume=False, laser_emu=None, added=()):
     cfg = replace(cfg, ptu=replace(cfg.ptu, port=emu.port))
     if laser_emu is not None:
         cfg = replace(cfg, laser=replace(cfg.laser, control="serial", port=laser_emu.port, on="L1", off="L0"))
-    return capture(cfg, out, resume=resume, pointing=pointing_of(emu, laser_emu))
+    return capture(cfg, out, resume=resume, pointing=pointing_of(emu, laser_emu), added=added)
 
 
 @pytest.fixture(scope="module")
@@ -218,3 +218,31 @@ def test_a_dark_frame_every_four_beams_is_linked_into_the_beams_between(referenc
     assert verify_log(out) == []
     merge_capture(out, tmp_path / "hdr")
     assert len(list((tmp_path / "hdr").glob("beam-*.exr"))) == 8
+
+
+def test_a_plan_extended_by_a_refine_pass_appends_and_keeps_every_frame(reference, tmp_path):
+    """capture(resume=True, added=...) shoots only the added beams, logged as 'extend';
+    the frames taken stay byte for byte; the manifest names the passes; the first plan
+    alone is refused on the extended scan (it no longer describes it)."""
+    import shutil
+
+    import numpy as np
+
+    from ilt.capture.config import ConfigError
+    from ilt.io.manifest import read_manifest
+
+    out = tmp_path / "capture"
+    shutil.copytree(reference[0], out)
+    before = frame_hashes(out)
+    added = [np.array([[-4.0, 0.0], [1.3, 0.0]])]
+    with PTUEmulator("pty", speed=20000) as emu:
+        summary = run_on(emu, small_config(), out, resume=True, added=added)
+    assert summary["shot"] == 2 and summary["beams"] == 10
+    after = frame_hashes(out)
+    assert {k: after[k] for k in before} == before and len(after) == len(before) + 2 * 5  # 3 frames, dark, manifest
+    assert [r["event"] for r in read_log(out / LOG_NAME)].count("extend") == 1
+    manifest = read_manifest(out)
+    assert manifest["plan"]["passes"] == [8, 10] and manifest["plan"]["targets"][8:] == added[0].tolist()
+    assert verify_log(out) == []
+    with PTUEmulator("pty", speed=20000) as emu, pytest.raises(ConfigError, match="differ from the capture's"):
+        run_on(emu, small_config(), out, resume=True)

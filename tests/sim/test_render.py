@@ -75,3 +75,27 @@ def test_unknown_scene_and_bad_spot():
         render_scene("teapot")
     with pytest.raises(ValueError, match="spot"):
         render_scene("m", spot=0)
+
+
+def test_a_beam_between_plan_beams_lands_between_them(flat, box):
+    """beam_between: at a plan position it is that beam; halfway inside a face, the
+    spot is halfway (flatland: exactly, the orthographic column) with unit power; across
+    the M's fold it lands on the surface the column between them sees."""
+    np.testing.assert_allclose(flat.beam_between((5,)).beam_frame(0), flat.beam_frame(5), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(box.beam_between((1, 0)).beam_frame(0), box.beam_frame(1), rtol=0, atol=1e-6)
+    assert flat.target_facet[5] == flat.target_facet[6]
+    half = flat.beam_between((5.5,))
+    np.testing.assert_allclose(half.centres[0], flat.centres[5:7].mean(axis=0), atol=1e-6)
+    g = half.geometry
+    np.testing.assert_allclose((half.beam_direct(0) * g.area / g.albedo).sum(), 1.0, rtol=1e-12)
+    quarter = box.beam_between((0.25, 0.0))
+    np.testing.assert_allclose(quarter.targets[0], 0.75 * box.targets[0] + 0.25 * box.targets[1], atol=1e-12)
+    fold = int(np.flatnonzero(np.diff(flat.target_facet))[0])
+    across = flat.beam_between((fold + 0.5,))
+    x = flat.targets[fold:fold + 2, 0].mean()
+    assert across.targets[0, 0] == pytest.approx(x)
+    from ilt.sim.render import _flatland_topmost
+
+    patch, point = _flatland_topmost(flat.geometry, np.array([[x]]))
+    assert across.targets[0, 1] == pytest.approx(point[0, 0, 1])
+    assert across.target_facet[0] == flat.geometry.facet[patch[0, 0]]

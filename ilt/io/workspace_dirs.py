@@ -8,6 +8,7 @@ WORKSPACE/
   spots/        ilt centroids    spots.csv, overlay.png
   isf/          ilt build-isf    T.npy, samples.csv
   refine/       ilt refine       refine.csv: where the next beams should land
+  passes/       ilt run          [refine] passes: pass-P/ (refine's output), landing.csv
   photos/       ilt run          photos merged from their brackets (simulated rig)
   decompose/    ilt decompose    one directory of bounce images per photo
   report/       ilt report       index.html and its PNGs
@@ -35,6 +36,9 @@ STAGE_DIRS = {
 }
 CONFIG = "rig.toml"
 REPORT = "report"
+#: the refine passes of `ilt run` (ilt.workspace.passes) and each new beam's landing
+PASSES = "passes"
+LANDING_CSV = "landing.csv"
 
 
 class Workspace:
@@ -56,6 +60,10 @@ class Workspace:
     @property
     def report(self) -> Path:
         return self.root / REPORT
+
+    @property
+    def passes(self) -> Path:
+        return self.root / PASSES
 
     def resolve(self, given: str | os.PathLike | None, stage: str) -> str:
         """``given`` when a path was given, else the stage's directory in this workspace."""

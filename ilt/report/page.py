@@ -26,7 +26,7 @@ import numpy as np
 from ilt.capture.log import read_log
 from ilt.io.manifest import LOG_NAME, MANIFEST, read_manifest, write_manifest
 from ilt.io.staged import staged_directory
-from ilt.io.workspace_dirs import Workspace
+from ilt.io.workspace_dirs import LANDING_CSV, Workspace
 
 FIG5_BOUNCES = 4
 
@@ -62,6 +62,27 @@ def capture_statistics(capture_dir: str | os.PathLike) -> dict | None:
         "camera": manifest.get("camera", {}).get("model"),
         "complete": bool(manifest),
     }
+
+
+def _landing(path: Path) -> str:
+    """Each beam a refine pass added: the pixel refine aimed at, the spot found, the
+    distance (full-resolution pixels), from ``passes/landing.csv`` (ilt run)."""
+    import csv
+
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    head = ("pass", "beam", "target_x", "target_y", "spot_x", "spot_y", "error_px", "flags")
+    cells = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(_number(r.get(k, ''))))}</td>" for k in head) + "</tr>"
+                    for r in rows)
+    return (f"<p>{len(rows)} beams added by refine passes; the error is the pointing map's "
+            "(docs/refine.md)</p><table><tr>" + "".join(f"<th>{k}</th>" for k in head) + "</tr>" + cells + "</table>")
+
+
+def _number(text: str):
+    try:
+        return float(text)
+    except ValueError:
+        return text
 
 
 def _table(rows: dict) -> str:
@@ -120,6 +141,9 @@ def write_report(workspace: Workspace, out: str | os.PathLike | None = None, for
     with staged_directory(out, force=force) as tmp:
         stats = capture_statistics(ws.stage_dir("capture"))
         sections.append("<h2>Capture</h2>" + (_table(stats) if stats else '<p class="missing">no capture</p>'))
+
+        if (ws.passes / LANDING_CSV).is_file():
+            sections.append("<h2>Refine passes: where the new beams landed</h2>" + _landing(ws.passes / LANDING_CSV))
 
         body = "<h2>Scene and spots (Fig. 4)</h2>"
         if (spots / "overlay.png").exists():

@@ -29,12 +29,10 @@ import numpy as np
 from ilt.capture.config import ConfigError
 from ilt.io.atomic import atomic_path
 from ilt.io.manifest import MANIFEST, StageError, fingerprint_file, write_json
-from ilt.io.workspace_dirs import Workspace
+from ilt.io.workspace_dirs import LANDING_CSV, Workspace
 
 log = logging.getLogger(__name__)
 
-PASSES_DIR = "passes"
-LANDING_CSV = "landing.csv"
 LANDING_JSON = "landing.json"
 #: most refine passes a config may ask (each re-runs merge, centroids and build-isf)
 MAX_PASSES = 100
@@ -106,7 +104,7 @@ class Pass:
 
 
 def passes_dir(ws: Workspace) -> Path:
-    return ws.root / PASSES_DIR
+    return ws.passes
 
 
 def pass_dir(ws: Workspace, number: int) -> Path:

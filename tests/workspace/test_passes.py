@@ -140,3 +140,14 @@ def test_bad_refine_sections_are_one_line(tmp_path, section, message):
     result = invoke("run", str(config), "-w", str(tmp_path / "ws"))
     assert result.exit_code == 1 and message in result.output, result.output
     assert not (tmp_path / "ws").exists()
+
+
+def test_the_report_shows_each_new_beams_landing(refined, tmp_path):
+    ws = refined[0] / "ws"
+    result = invoke("report", "-w", str(ws), "-o", str(tmp_path / "report"))
+    assert result.exit_code == 0, result.output
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert "Refine passes: where the new beams landed" in page
+    with open(ws / "passes" / "landing.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) >= 2 and page.count("<tr><td>") == len(rows)   # one row a new beam (2 a pass)

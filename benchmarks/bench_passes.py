@@ -1,0 +1,120 @@
+"""`ilt run` with refine passes against uniform scans of as many beams, on the emulated rig (issue 21).
+
+    python benchmarks/bench_passes.py [--base 16] [--passes 2] [--beams 4] [--keep DIR]
+
+The emulated rig of configs/sim.toml (pan-tilt unit on a pseudo-terminal, the simulated
+camera writing DNG brackets with photon and read noise, the M scene) scans:
+
+- **refined**: a line of ``--base`` beams, then ``--passes`` passes of ``ilt refine``
+  adding ``--beams`` each, captured where refine aimed them (``[refine]`` in the config);
+- **uniform**: lines of ``--base`` and of base + passes x beams beams (the same rig time),
+  with ``px_per_beam`` scaled so every scan sees the same frame.
+
+Each is ``ilt run`` end to end (capture -> merge -> centroids -> build-isf -> photos ->
+decompose). Errors: relative L2 of the full-resolution bounces 1-3 (decompose's
+bounce-N.exr, the green grid merge makes) of each photo against the renderer's exact
+bounces of the scan's own scene (in the units of its merged photo), over the pixels
+every scan covers. Prints a markdown
+table, the mean per scan, each run's time and the landing error of refine's beams.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ilt.evaluate.end_to_end import green_grid, rendered_scene
+from ilt.io.exr import read_exr
+from ilt.io.workspace_dirs import Workspace
+from ilt.workspace.pipeline import load_run_config, run_pipeline
+
+ROOT = Path(__file__).resolve().parents[1]
+PHOTOS = ("flashlight", "room", "projector")
+
+
+def config(beams: int, px_per_beam: float, refine: str = "") -> str:
+    text = (ROOT / "configs" / "sim.toml").read_text()
+    text = re.sub(r"count = \d+", f"count = {beams}", text)
+    text = re.sub(r"px_per_beam = [0-9.]+", f"px_per_beam = {px_per_beam!r}", text)
+    return text + refine
+
+
+def run(root: Path, name: str, text: str) -> tuple[Workspace, float]:
+    ws = Workspace(root / name)
+    ws.root.mkdir(parents=True, exist_ok=True)
+    (ws.root / "config.toml").write_text(text)
+    t0 = time.monotonic()
+    run_pipeline(ws, load_run_config(ws.root / "config.toml"))
+    return ws, time.monotonic() - t0
+
+
+def errors(ws: Workspace, mask: np.ndarray) -> np.ndarray:
+    """(photos, 3) relative errors of bounces 1-3 over ``mask``."""
+    cfg = load_run_config(ws.root / "config.toml")
+    scene, sensor = rendered_scene(cfg.rig)
+    out = np.empty((len(PHOTOS), 3))
+    for p, kind in enumerate(PHOTOS):
+        photo, bounces = scene.photo(kind, n_bounces=3)
+        # the rig's units: the merged photo against the rendered one (radiance scale, gain)
+        measured = read_exr(ws.stage_dir("photos") / f"{kind}.exr")[0][..., 0].astype(np.float64)
+        truth = green_grid(bounces, sensor) * measured[mask].sum() / green_grid(photo, sensor)[mask].sum()
+        for n in range(3):
+            est = read_exr(ws.stage_dir("decompose") / kind / f"bounce-{n + 1}.exr")[0][..., 0].astype(np.float64)
+            out[p, n] = np.linalg.norm((est - truth[n])[mask]) / np.linalg.norm(truth[n][mask])
+    return out
+
+
+def coverage(ws: Workspace) -> np.ndarray:
+    return read_exr(ws.stage_dir("decompose") / "room" / "coverage.exr")[0][..., 0] > 0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--base", type=int, default=16)
+    parser.add_argument("--passes", type=int, default=2)
+    parser.add_argument("--beams", type=int, default=4)
+    parser.add_argument("--keep", help="keep the workspaces here")
+    args = parser.parse_args()
+    total = args.base + args.passes * args.beams
+    px = 16.0 * 32 / args.base     # configs/sim.toml's frame: 32 beams at 16 px
+    with tempfile.TemporaryDirectory() as scratch:
+        root = Path(args.keep or scratch)
+        scans = {
+            f"uniform {args.base}": config(args.base, px),
+            f"refined {args.base} + {args.passes} x {args.beams}":
+                config(args.base, px, f"\n[refine]\npasses = {args.passes}\nbeams = {args.beams}\n"),
+            f"uniform {total}": config(total, px * args.base / total),
+        }
+        done = {name: run(root, name.replace(" ", "-").replace("+", "p"), text) for name, text in scans.items()}
+        masks = [coverage(ws) for ws, _ in done.values()]
+        shapes = {m.shape for m in masks}
+        if len(shapes) != 1:
+            raise SystemExit(f"the scans' frames differ in shape: {shapes}")
+        mask = np.logical_and.reduce(masks)
+        print(f"pixels every scan covers: {int(mask.sum())} of {mask.size}\n")
+        print("| scan | beams | " + " | ".join(f"{k} b{n}" for k in PHOTOS for n in (1, 2, 3)) +
+              " | mean | run s |\n|---|---|" + "---|" * (3 * len(PHOTOS) + 2))
+        means = {}
+        for name, (ws, seconds) in done.items():
+            e = errors(ws, mask)
+            means[name] = float(e.mean())
+            beams = len(json.loads((ws.stage_dir("capture") / "manifest.json").read_text())["beams"])
+            print(f"| {name} | {beams} | " + " | ".join(f"{v:.4f}" for v in e.ravel()) +
+                  f" | {means[name]:.4f} | {seconds:.1f} |")
+        names = list(done)
+        print(f"\nrefined / uniform {args.base}: {means[names[1]] / means[names[0]]:.3f}; "
+              f"refined / uniform {total}: {means[names[1]] / means[names[2]]:.3f}")
+        landing = json.loads((done[names[1]][0].root / "passes" / "landing.json").read_text())
+        for p in landing["passes"]:
+            print(f"pass {p['pass']}: {p['found']} of {p['beams']} new beams found, landing median "
+                  f"{p['median_px']} px, max {p['max_px']} px")
+
+
+if __name__ == "__main__":
+    main()

@@ -48,13 +48,17 @@ from ilt.workspace.options import DECOMPOSE
 @stage_option(DECOMPOSE["samples_only"],
               help="Split the photo at the m samples only: skip the full-resolution bounce images "
                    "(the ISF's fine/ operator).")
+@click.option("--no-spill", "no_spill", is_flag=True,
+              help="Take T1 diagonal, as the paper does, even when the ISF measured its spots' direct light "
+                   "in neighbouring cells (isf/spill.npz): by default that light is taken out of T first, "
+                   "so it is not read as interreflection (docs/spots-and-isf.md).")
 @cluster_options_for("the compression of T's blocks, with the compressed solver (T.npy on storage every "
                      "worker sees; the other solvers, the photos and the outputs stay on this machine)")
 @workspace_option
 @force_option
 @json_option
 def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solver, noise, regularise, samples_only,
-            cluster, workspace, force, as_json):
+            no_spill, cluster, workspace, force, as_json):
     """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
 
     INPUT is an EXR photo on the grid of the beam frames (integrated over the ISF's
@@ -79,5 +83,5 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
     with executor_for(cluster) as executor:
         summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache,
                               force=force, solver=solver, noise=noise, regularise=regularise,
-                              samples_only=samples_only, executor=executor)
+                              samples_only=samples_only, executor=executor, spill=not no_spill)
     emit(as_json, summaries, [s["output"] for s in summaries])

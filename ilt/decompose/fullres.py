@@ -15,13 +15,15 @@ from ilt.isf.fine import FineOperator
 
 
 def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np.ndarray,
-                    excluded: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                    excluded: np.ndarray | None = None, weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The photo's full-resolution bounce images (module docstring).
 
     photo : (H, W) or (H, W, c) float32, on the cells' grid; decomposition : its
     :class:`ilt.transport.operators.Decomposition` (cell integrals, (m,) or (m, c)); t1 : (m,) the
     operator's diagonal of T1 for the ISF's T; excluded : (H, W) bool pixels left out
-    (saturated): no coverage.
+    (saturated): no coverage; weights : (N, m[, c]) the beam weights of each bounce's
+    re-emitted light, ``T^-1 r_n`` (default ``L_(n+1) / t1``, the paper's; with a spill
+    matrix the caller's, from the unmixed recursion, :mod:`ilt.isf.spill`).
     Returns {"bounce-1" .. "bounce-N", "indirect", "residual", "coverage"}: (H, W[, c])
     float32 images; ``photo = bounce-1 + ... + bounce-N + residual`` at every pixel.
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
@@ -31,7 +33,8 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     flat = image.reshape(shape[0] * shape[1], -1)
     bounces = np.asarray(decomposition.bounces).reshape(count, m, -1)
     residual = bounces.sum(axis=0) + np.asarray(decomposition.residual).reshape(m, -1)   # r_0 = L
-    per_cell = fine.per_cell(bounces / t1[None, :, None]).reshape(-1, m, count, flat.shape[1])
+    weights = bounces / t1[None, :, None] if weights is None else np.asarray(weights).reshape(count, m, -1)
+    per_cell = fine.per_cell(weights).reshape(-1, m, count, flat.shape[1])
     basis = fine.geometry.basis(fine.degree)
     inside = fine.geometry.inside
     excluded = None if excluded is None or not excluded.any() else excluded.reshape(-1)

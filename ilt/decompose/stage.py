@@ -11,7 +11,7 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,10 +36,12 @@ from ilt.isf.directory import ISF
 from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
 from ilt.isf.layout import sample_frame, splat, vector_to_image
 from ilt.isf.noise import NOISE_FILE, read_noise
+from ilt.isf.spill import SPILL_FILE, mix, unmix
 from ilt.transport.compressed import grid_points
 from ilt.transport.diagnostics import decomposition_diagnostics, operator_diagnostics
 from ilt.transport.operators import (
     CancellationOperator,
+    Decomposition,
     bounce_images,
     cancellation_operator,
 )
@@ -338,7 +340,7 @@ def _images(values: np.ndarray, isf: ISF, frame: bool) -> dict[str, np.ndarray]:
 
 def write_decomposition(
     directory: Path, photo: Photo, isf: ISF, decomposition, diagnostics: dict, fine: FineOperator | None = None,
-    t1: np.ndarray | None = None,
+    t1: np.ndarray | None = None, weights: np.ndarray | None = None,
 ) -> None:
     """Fill ``directory`` with one photo's results (see docs/formats.md): with a fine
     operator (and a frame input), the full-resolution images at the top and the
@@ -365,7 +367,7 @@ def write_decomposition(
     panels["indirect"] = first(decomposition.indirect)
     bounce_panel(samples / "preview.png", {k: vector_to_image(v, isf.layout, isf.beams) for k, v in panels.items()})
     if fine is not None and photo.image is not None:
-        images = full_resolution(fine, photo.image, decomposition, t1, photo.saturated)
+        images = full_resolution(fine, photo.image, decomposition, t1, photo.saturated, weights)
         for name, image in images.items():
             attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name, **isf.mapping.attributes()}
             write_exr(directory / f"{name}.exr", image, channels=["Y"] if name == "coverage" else channels,
@@ -408,8 +410,13 @@ def decompose(
     regularise: bool = False,
     samples_only: bool = False,
     executor=None,
+    spill: bool = True,
 ) -> list[dict]:
     """Decompose every input into ``out/<stem>/``; returns one summary per input.
+
+    ``spill``: when the ISF measured its spots' direct light in other cells
+    (``spill.npz``, :mod:`ilt.isf.spill`), split ``(I + Q)^-1 p`` with the operator of
+    ``(I + Q)^-1 T`` and mix the bounces back (``False``: the paper's diagonal ``T1``).
 
     ``solver``, ``noise`` and ``regularise`` choose how ``C1`` is built (see
     :func:`load_operator`). EXR photos are also split at full resolution when the ISF
@@ -431,7 +438,7 @@ def decompose(
         raise InputError(f"two inputs share a name ({stems}); their results would collide in {out}")
     out = Path(out)
     fingerprint = fingerprint_array(np.asarray(isf.T))
-    parameters = decompose_parameters(isf, n_bounces, tol, solver, noise, regularise, samples_only)
+    parameters = decompose_parameters(isf, n_bounces, tol, solver, noise, regularise, samples_only, spill)
     hashes = {photo.name: fingerprint_file(photo.path) for photo in photos}   # each photo read once
     done = {}
     for photo in photos:
@@ -459,19 +466,33 @@ def decompose(
     noise_source = "given"
     if noise is None:   # the frames' noise, carried into T by build-isf (ilt.isf.noise), when it measured it
         noise, noise_source = frames_noise(isf.path)
+    Q = isf.spill if spill and isf.spill is not None and isf.spill.nnz else None
+    T_op, op_fingerprint = (isf.T, fingerprint) if Q is None else (unmix(Q, np.asarray(isf.T)), None)
     try:
-        op, op_diag = load_operator(isf.T, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
-                                    isf.samples, fingerprint=fingerprint, executor=executor,
+        op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
+                                    isf.samples, fingerprint=op_fingerprint, executor=executor,
                                     noise_source=noise_source)
     except TransportError as exc:
         raise TransportError(f"{isf.path}: {exc}") from None
+    if Q is not None:
+        op_diag["spill"] = {"entries": int(Q.nnz), "mean_share": float(Q.sum() / isf.m),
+                            "operator_of": "(I + Q)^-1 T", "fingerprint": op_diag["fingerprint"]}
+        log.info("%s: the spots' direct light in other cells (%d entries, %.2g of a spot's on average) "
+                 "is taken out of T before inverting", isf.path, Q.nnz, Q.sum() / isf.m)
     for w in op_diag["warnings"]:
         log.warning("%s: %s", isf.path, w)
     created = not out.exists()
     summaries = {}
     try:
         for photo in todo:
-            dec = bounce_images(op, photo.values, n_bounces=n_bounces, tol=tol)
+            weights = None
+            if Q is None:
+                dec = bounce_images(op, photo.values, n_bounces=n_bounces, tol=tol)
+            else:
+                unmixed = bounce_images(op, unmix(Q, photo.values), n_bounces=n_bounces, tol=tol)
+                t1 = op.t1[None, :, None] if unmixed.bounces.ndim == 3 else op.t1[None, :]
+                weights = unmixed.bounces / t1
+                dec = remix(Q, unmixed, photo.values)
             diag = decomposition_diagnostics(photo.values, dec)
             for w in diag["warnings"]:
                 log.warning("%s: %s", photo.path, w)
@@ -488,10 +509,10 @@ def decompose(
                 log.warning("%s: %d saturated pixels (values are lower bounds) left out of the full-resolution "
                             "images (coverage 0, all residual)", photo.path, int(photo.saturated.sum()))
             with staged_directory(out / photo.name, force=force) as tmp:
-                write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1)
+                write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1, weights)
                 write_manifest(
                     tmp, "decompose", parameters,
-                    inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): op_diag["fingerprint"]},
+                    inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): fingerprint},
                 )
             log.info("%s -> %s (%s)", photo.path, out / photo.name, diag["stop_reason"])
             summaries[photo.name] = {**summary, "output": str(out / photo.name)}
@@ -519,14 +540,29 @@ def frames_noise(isf_dir) -> tuple[float | None, str]:
 
 
 def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver: str = "auto",
-                         noise: float | None = None, regularise: bool = False, samples_only: bool = False) -> dict:
+                         noise: float | None = None, regularise: bool = False, samples_only: bool = False,
+                         spill: bool = True) -> dict:
     """What a photo's ``manifest.json`` records as the parameters of its decomposition:
-    the options, and the fine operator used by its manifest's hash (None: none), so a
-    re-run after ``fine/`` was built or rebuilt is not taken for one already done."""
-    manifest = Path(isf.path).parent / FINE_DIR / MANIFEST
+    the options, and the fine operator and spill matrix used by their files' hashes
+    (None: none), so a re-run after ``fine/`` or ``spill.npz`` was built or rebuilt is
+    not taken for one already done."""
+    directory = Path(isf.path).parent
+    manifest = directory / FINE_DIR / MANIFEST
     fine = None if samples_only or not manifest.exists() else fingerprint_file(manifest)
+    used = spill and isf.spill is not None and isf.spill.nnz
     return {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
-            "samples_only": samples_only, "fine": fine}
+            "samples_only": samples_only, "fine": fine,
+            "spill": fingerprint_file(directory / SPILL_FILE) if used else None}
+
+
+def remix(Q, unmixed: Decomposition, photo: np.ndarray) -> Decomposition:
+    """The bounces of ``photo`` from those of ``(I + Q)^-1 photo`` (:mod:`ilt.isf.spill`):
+    each ``L_n`` and the residual times ``I + Q`` (so they still sum to the photo)."""
+    bounces = mix(Q, unmixed.bounces.transpose(1, 0, *range(2, unmixed.bounces.ndim)))
+    bounces = bounces.transpose(1, 0, *range(2, bounces.ndim))
+    total = np.linalg.norm(photo, axis=0)
+    norms = np.linalg.norm(bounces, axis=1) / np.where(total > 0, total, 1.0)
+    return replace(unmixed, bounces=bounces, residual=mix(Q, unmixed.residual), relative_norms=norms)
 
 
 def previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dict | None:

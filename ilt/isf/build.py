@@ -56,6 +56,7 @@ from ilt.isf.noise import (
     fit_frame_noise,
     write_noise,
 )
+from ilt.isf.spill import SPILL_FILE, spill_matrix, spot_spill, spot_windows
 from ilt.parallel.chunks import beam_executor, chunks, run_chunks
 from ilt.spots.stage import PEAK_FILE, PEAK_SMOOTH, SUM_FILE
 from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
@@ -198,26 +199,34 @@ def _hysteresis(image: np.ndarray, low: float, high: float) -> np.ndarray:
     return np.isin(regions, strong[strong > 0])
 
 
-def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):
+def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None, spill=None):
     """Worker: one column of raw T per frame, (m, len(beams)) float64, and below it, with
     a fine ``degree``, the frame's (K m) raw fine-operator coefficients (:mod:`ilt.isf.fine`)
-    and the cell sums of its squares (m).
+    and the cell sums of its squares (m). With ``spill`` (cell sampling: each beam's row
+    of T, spot centre and window on the grid, and the frames' noise model), also each
+    spot's share in the other cells (:func:`ilt.isf.spill.spot_spill`): then returns
+    (the array, a dict per beam).
 
     sampler: the path of ``cells.exr`` (cell sampling; read once per worker process), or
     the (m,) flat pixel indices of the samples (point sampling). files: each beam's EXR,
     or None for a beam whose frame ``scratch`` (:class:`ilt.io.frames.FrameScratch`) keeps.
     """
-    operator, cells = _cached_operator(sampler, m, degree) if isinstance(sampler, (str, Path)) else (None, None)
+    operator, cells, labels = _cached_operator(sampler, m, degree) if isinstance(sampler, (str, Path)) \
+        else (None, None, None)
     out = np.empty((m if operator is None else operator.shape[0] + (m if degree else 0), len(files)))
     frame = np.empty(shape)  # one float64 buffer for the chunk: the product reads it as is
     kept = np.empty(shape, np.float32) if scratch is not None else None
     fd = scratch.open() if scratch is not None and None in files else None
+    shares = []
     try:
         for k, (beam, path) in enumerate(zip(beams, files)):
             if path is None:
                 np.copyto(frame, scratch.read(fd, beam, kept))
             else:
                 load_frame(path, shape, out=frame)
+            if spill is not None and labels is not None:
+                rows, centres, radii, noise = spill
+                shares.append(spot_spill(frame, labels, int(rows[k]), centres[k], float(radii[k]), noise))
             if operator is None:
                 out[:, k] = frame.ravel()[sampler]
             elif degree:
@@ -228,7 +237,7 @@ def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None):
     finally:
         if fd is not None:
             os.close(fd)
-    return out
+    return (out, shares) if spill is not None else out
 
 
 _OPERATOR_CACHE: dict = {}
@@ -250,7 +259,7 @@ def _cached_operator(path, m, degree=None):
         if degree:
             operator = scipy.sparse.vstack([cells, fit_operator(CellGeometry.from_labels(labels, m), degree)],
                                            format="csr")
-        _OPERATOR_CACHE[key] = operator, cells
+        _OPERATOR_CACHE[key] = operator, cells, labels
     return _OPERATOR_CACHE[key]
 
 
@@ -345,8 +354,18 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         # a frame the centroids pass kept when there is one (it may have run out of disk)
         scratch = FrameScratch(Path(frame_cache), hdr.frame_shape) if frame_cache is not None else None
         kept = scratch.kept() if scratch is not None else frozenset()
+        row_of = {b: i for i, b in enumerate(plan)}
+        radii = spot_windows(on_grid)
+
+        def spill_of(c):
+            if labels is None:
+                return None
+            rows = np.array([row_of[b] for b in c])
+            return rows, on_grid[rows], radii[rows], noise
+
         tasks = [(c, [None if b in kept else hdr.files[b] for b in c], hdr.frame_shape, sampler, m,
-                  scratch if kept else None, fine_degree) for c in chunks(plan, chunk)]
+                  scratch if kept else None, fine_degree, spill_of(c)) for c in chunks(plan, chunk)]
+        spill_columns = []
         # T's columns go straight into the memory-mapped T.npy, divided by their norms as
         # they arrive (elementwise, so the same floats as raw / scales on the whole); the
         # fine coefficients into a float32 memory map, block by block (FineAccumulator):
@@ -366,6 +385,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         done = 0
         with beam_executor(executor, workers) as ex:
             for block in run_chunks(_column_chunk, tasks, ex, progress=progress):
+                if isinstance(block, tuple):
+                    block, shares = block
+                    spill_columns.extend(shares)
                 b = block.shape[1]
                 raw = block[:m]
                 norms = scales[done:done + b] = _column_norms(raw)
@@ -405,6 +427,11 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             del entry_noise.out
             write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} of the beam frames, spread over the scan")
             fields["noise"] = {"entry_sigma": entry_noise.entry_sigma, "frames": noise.frames}
+        if labels is not None:
+            Q = spill_matrix(spill_columns, m)
+            scipy.sparse.save_npz(tmp / SPILL_FILE, Q)
+            fields["spill"] = {"entries": int(Q.nnz), "mean_share": float(Q.sum() / m),
+                               "max_share": float(Q.max()) if Q.nnz else 0.0}
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
         save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")

@@ -29,6 +29,7 @@ import numpy as np
 
 from ilt.io.frames import FULL_RESOLUTION, FrameError, PixelMapping
 from ilt.io.manifest import MANIFEST, read_manifest, save_npy
+from ilt.isf.spill import SPILL_FILE
 
 T_FILE = "T.npy"
 SAMPLES_FILE = "samples.csv"
@@ -49,7 +50,9 @@ class ISF:
     beams : (m,) int plan beam of each row (scanline position in ``layout``);
     cells : (H, W) int32 row of T per pixel of the frame grid, -1 outside (cell sampling) or None;
     scales : (m,) float64 column norms of the raw T, or None;
-    mapping : where frame-grid pixels lie in full-frame pixels (samples are full-frame).
+    mapping : where frame-grid pixels lie in full-frame pixels (samples are full-frame);
+    spill : (m, m) sparse ``Q``, each spot's direct light in the other cells over its own
+    (:mod:`ilt.isf.spill`; None: not measured, as for point sampling or an older ISF).
     """
 
     T: np.ndarray
@@ -61,6 +64,7 @@ class ISF:
     cells: np.ndarray | None = None
     scales: np.ndarray | None = None
     mapping: PixelMapping = FULL_RESOLUTION
+    spill: object = None
 
     @property
     def m(self) -> int:
@@ -166,8 +170,22 @@ def load_isf(path: str | os.PathLike, mmap: bool = False) -> ISF:
         beams = None                                   # every beam kept: rows are the layout
     cells = read_cells(directory / CELLS_FILE, m, frame_shape) if (directory / CELLS_FILE).exists() else None
     scales = np.load(directory / SCALES_FILE, allow_pickle=False) if (directory / SCALES_FILE).exists() else None
+    spill = read_spill(directory / SPILL_FILE, m) if (directory / SPILL_FILE).exists() else None
     return ISF(T=T, samples=samples, layout=layout, frame_shape=frame_shape, path=t_path, beams=beams,
-               cells=cells, scales=scales, mapping=mapping)
+               cells=cells, scales=scales, mapping=mapping, spill=spill)
+
+
+def read_spill(path: Path, m: int):
+    """The sparse (m, m) spill matrix of ``spill.npz``, its entries finite and >= 0."""
+    import scipy.sparse
+
+    try:
+        Q = scipy.sparse.load_npz(path).tocsr()
+    except (OSError, ValueError, KeyError) as exc:
+        raise ISFError(f"{path}: not a readable sparse matrix ({exc})") from None
+    if Q.shape != (m, m) or not np.all(np.isfinite(Q.data)) or (Q.data < 0).any():
+        raise ISFError(f"{path}: expected an ({m}, {m}) matrix of finite shares >= 0, got shape {Q.shape}")
+    return Q
 
 
 def read_cells(path: Path, m: int, frame_shape=None) -> np.ndarray:

@@ -1,0 +1,50 @@
+"""The spill matrix: a spot's direct light in its neighbours' cells (ilt.isf.spill)."""
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+from ilt.isf.noise import FrameNoise
+from ilt.isf.spill import mix, spill_matrix, spot_spill, unmix
+
+
+def split_frame(sigma, distance, rng=None, electrons=None):
+    """A Gaussian spot of ``sigma`` px ``distance`` px left of the boundary between cell 0
+    (left) and cell 1, on a sloped background; with ``electrons``, photon + read noise."""
+    h, w = 61, 61
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    centre = np.array([30.0 - distance, 30.0])
+    spot = 1000.0 * np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * sigma**2))
+    frame = spot + 2.0 + 0.01 * xx + 0.02 * yy
+    labels = (xx >= 29.5).astype(np.int64)    # the boundary at x = 29.5 (pixel edges)
+    noise = None
+    if electrons:
+        gain = electrons / frame.max()
+        frame = frame + rng.normal(size=frame.shape) * np.sqrt(frame / gain + (3 / gain) ** 2)
+        levels = np.linspace(0, 1200, 13)
+        noise = FrameNoise(tuple(levels), tuple(levels / gain + (3 / gain) ** 2), 1, 0, 0, 1 / gain)
+    edge = 29.5 - centre[0]
+    truth = (1 - ndtr(edge / sigma)) / ndtr(edge / sigma)
+    return frame, labels, centre, truth, noise
+
+
+@pytest.mark.parametrize("sigma, distance", [(2.0, 2.0), (3.0, 4.0), (1.5, 1.0)])
+def test_the_share_in_the_next_cell_is_the_gaussian_tail(sigma, distance):
+    frame, labels, centre, truth, _ = split_frame(sigma, distance)
+    share = spot_spill(frame, labels, 0, centre, 20.0)
+    assert share[1] == pytest.approx(truth, rel=0.03)
+
+
+def test_under_noise_the_share_holds_and_a_lone_spot_has_none():
+    rng = np.random.default_rng(3)
+    frame, labels, centre, truth, noise = split_frame(2.0, 2.5, rng, electrons=2e4)
+    assert spot_spill(frame, labels, 0, centre, 20.0, noise)[1] == pytest.approx(truth, rel=0.1)
+    far, labels, centre, _, noise = split_frame(2.0, 14.0, rng, electrons=2e4)
+    assert spot_spill(far, labels, 0, centre, 20.0, noise) == {}
+
+
+def test_mix_and_unmix_are_inverse_on_stacks():
+    Q = spill_matrix([{1: 0.1}, {0: 0.05, 2: 0.2}, {}], 3)
+    x = np.random.default_rng(0).normal(size=(3, 4, 2))
+    np.testing.assert_allclose(unmix(Q, mix(Q, x)), x, atol=1e-12)
+    np.testing.assert_allclose(mix(Q, x)[:, 0, 0], (np.eye(3) + Q.toarray()) @ x[:, 0, 0])

@@ -3,6 +3,7 @@
     python benchmarks/bench_isf.py throughput [--quick] [--beams M] [--width W --height H]
     python benchmarks/bench_isf.py sampling [--quick] [--densities 32,64,128]
     python benchmarks/bench_isf.py noise [--quick] [--beams M] [--width W --height H]
+    python benchmarks/bench_isf.py spill [--quick] [--beams M] [--width W --height H]
 
 throughput: writes m synthetic beam frames (a Gaussian laser spot on a smooth
 interreflection-like background), then times, in this process, (a) just reading
@@ -16,6 +17,10 @@ the fit on the frames' sum, each entry's variance, the fine fit's noise terms): 
 on the synthetic frames (noise 0.01, and a dark strip where their sum reads below zero) as it is, and with the
 noise fit switched off (no noise.json, the fine fit's old test), back to back in every
 repeat; medians and the ratio (target <= 1.2).
+
+spill: the cost of measuring each spot's direct light in its neighbours' cells (issue 21,
+:mod:`ilt.isf.spill`): build-isf on the synthetic frames with and without it, back to back
+in every repeat; medians and the ratio (target <= 1.15).
 
 sampling: renders the flatland M at several beam densities (spot sigma 1/20 of the
 beam spacing, 16 surface patches per spacing), runs centroids, build-isf with cell
@@ -137,6 +142,29 @@ def noise_cost(m: int, width: int, height: int, workers: int, repeats: int) -> N
     print(f"  ratio {ratio:.3f} (target <= 1.2)")
 
 
+def spill_cost(m: int, width: int, height: int, workers: int, repeats: int) -> None:
+    from ilt.isf import build
+    from ilt.spots.stage import run_centroids
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        synthetic_frames(tmp / "hdr", m, width, height, noise=0.01)
+        run_centroids(tmp / "hdr", tmp / "spots", workers=workers)
+        times: dict = {True: [], False: []}
+        for _ in range(repeats + 1):   # the first round warms the page cache and is not counted
+            for spill in (True, False):
+                t = time.perf_counter()
+                build.build_isf(tmp / "hdr", tmp / "spots", tmp / "isf", workers=workers, force=True, spill=spill)
+                times[spill].append(time.perf_counter() - t)
+                assert (tmp / "isf" / "spill.npz").exists() == spill
+    with_, without = (statistics.median(times[k][1:]) for k in (True, False))
+    ratio = statistics.median(a / b for a, b in zip(times[True][1:], times[False][1:]))
+    print(f"build-isf, m = {m}, {width} x {height}, {workers} workers, medians of {repeats} repeats")
+    print(f"  with the spill measured  {with_:8.2f} s")
+    print(f"  without                  {without:8.2f} s")
+    print(f"  ratio {ratio:.3f} (target <= 1.15)")
+
+
 def sampling_errors(scene_name: str, beams: int, spot: float, workdir: Path, n_bounces: int = 4) -> dict:
     """{(sampling, kind): (n_bounces,) relative errors} for one rendered scene."""
     from ilt.decompose.stage import decompose
@@ -194,6 +222,13 @@ def main() -> None:
     n.add_argument("--height", type=int, default=480)
     n.add_argument("--workers", type=int, default=2)
     n.add_argument("--repeats", type=int, default=3)
+    sp = sub.add_parser("spill")
+    sp.add_argument("--quick", action="store_true", help="m = 128, 320 x 240")
+    sp.add_argument("--beams", type=int, default=1024)
+    sp.add_argument("--width", type=int, default=640)
+    sp.add_argument("--height", type=int, default=480)
+    sp.add_argument("--workers", type=int, default=2)
+    sp.add_argument("--repeats", type=int, default=3)
     s = sub.add_parser("sampling")
     s.add_argument("--quick", action="store_true", help="densities 16, 32")
     s.add_argument("--densities", default="32,64,128")
@@ -208,6 +243,10 @@ def main() -> None:
         if args.quick:
             args.beams, args.width, args.height = 128, 320, 240
         noise_cost(args.beams, args.width, args.height, args.workers, args.repeats)
+    elif args.what == "spill":
+        if args.quick:
+            args.beams, args.width, args.height = 128, 320, 240
+        spill_cost(args.beams, args.width, args.height, args.workers, args.repeats)
     else:
         densities = [16, 32] if args.quick else [int(d) for d in args.densities.split(",")]
         sampling_table(densities, args.spot, args.scene)

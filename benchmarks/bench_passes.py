@@ -8,7 +8,8 @@ camera writing DNG brackets with photon and read noise, the M scene) scans:
 - **refined**: a line of ``--base`` beams, then ``--passes`` passes of ``ilt refine``
   adding ``--beams`` each, captured where refine aimed them (``[refine]`` in the config);
 - **uniform**: lines of ``--base`` and of base + passes x beams beams (the same rig time),
-  with ``px_per_beam`` scaled so every scan sees the same frame.
+  with ``px_per_beam`` scaled so every scan sees the same frame and ``spot`` (in beam
+  spacings) so every scan has the same laser spot.
 
 Each is ``ilt run`` end to end (capture -> merge -> centroids -> build-isf -> photos ->
 decompose). Errors: relative L2 of the full-resolution bounces 1-3 (decompose's
@@ -38,10 +39,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PHOTOS = ("flashlight", "room", "projector")
 
 
-def config(beams: int, px_per_beam: float, refine: str = "") -> str:
+def config(beams: int, px_per_beam: float, refine: str = "", spot: float = 0.1) -> str:
     text = (ROOT / "configs" / "sim.toml").read_text()
     text = re.sub(r"count = \d+", f"count = {beams}", text)
     text = re.sub(r"px_per_beam = [0-9.]+", f"px_per_beam = {px_per_beam!r}", text)
+    text = re.sub(r"spot = [0-9.]+", f"spot = {spot!r}", text)
     return text + refine
 
 
@@ -89,7 +91,7 @@ def main() -> None:
             f"uniform {args.base}": config(args.base, px),
             f"refined {args.base} + {args.passes} x {args.beams}":
                 config(args.base, px, f"\n[refine]\npasses = {args.passes}\nbeams = {args.beams}\n"),
-            f"uniform {total}": config(total, px * args.base / total),
+            f"uniform {total}": config(total, px * args.base / total, spot=0.1 * total / args.base),
         }
         done = {name: run(root, name.replace(" ", "-").replace("+", "p"), text) for name, text in scans.items()}
         masks = [coverage(ws) for ws, _ in done.values()]

@@ -267,7 +267,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
               sampling: str = "cell", min_separation: float = 2.0, lit_fraction: float = 1e-3,
               max_cell_radius: float | None = None, executor=None, workers: int | None = None,
               chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
-              fine_degree: int | None = DEFAULT_DEGREE) -> dict:
+              fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True) -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
@@ -284,7 +284,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     their extent follows the scan's light, not the spacing of its spots.
     ``fine_degree`` (cell sampling): also write ``fine/``, the fine operator of
     full-resolution bounce images (:mod:`ilt.isf.fine`), fitted in the same pass over the
-    frames; None skips it.
+    frames; None skips it. ``spill`` (cell sampling): also write ``spill.npz``, each
+    spot's direct light in the other cells (:mod:`ilt.isf.spill`), measured in the same pass.
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
@@ -358,7 +359,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         radii = spot_windows(on_grid)
 
         def spill_of(c):
-            if labels is None:
+            if labels is None or not spill:
                 return None
             rows = np.array([row_of[b] for b in c])
             return rows, on_grid[rows], radii[rows], noise
@@ -427,7 +428,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             del entry_noise.out
             write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} of the beam frames, spread over the scan")
             fields["noise"] = {"entry_sigma": entry_noise.entry_sigma, "frames": noise.frames}
-        if labels is not None:
+        if labels is not None and spill:
             Q = spill_matrix(spill_columns, m)
             scipy.sparse.save_npz(tmp / SPILL_FILE, Q)
             fields["spill"] = {"entries": int(Q.nnz), "mean_share": float(Q.sum() / m),

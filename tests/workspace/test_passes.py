@@ -151,3 +151,29 @@ def test_the_report_shows_each_new_beams_landing(refined, tmp_path):
     with open(ws / "passes" / "landing.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) >= 2 and page.count("<tr><td>") == len(rows)   # one row a new beam (2 a pass)
+
+
+def test_hours_share_the_rig_time_over_the_passes_left(tmp_path):
+    """hours = H: each pass gets what is left of H at the capture estimate's time a beam,
+    shared over the passes left; none left writes an empty pass, and the run stops there."""
+    from ilt.capture.estimate import estimate
+    from ilt.io.workspace_dirs import Workspace
+    from ilt.workspace.passes import (
+        RefineConfig,
+        beams_for_pass,
+        completed_passes,
+        finished,
+        run_refine_pass,
+    )
+    from tests.capture_helpers import small_config
+
+    rig = small_config()
+    est = estimate(rig)
+    per_beam = est.seconds / est.beams
+    cfg = RefineConfig(passes=2, hours=20 * per_beam / 3600)
+    assert beams_for_pass(cfg, rig, [], tmp_path / "capture") == 10
+    ws = Workspace(tmp_path / "ws")
+    none = RefineConfig(passes=2, hours=0.5 * per_beam / 3600)
+    done = run_refine_pass(ws, none, rig, [])
+    assert done.beams == 0 and completed_passes(ws)[0].angles.shape == (0, 2)
+    assert finished(none, [done])

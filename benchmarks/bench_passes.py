@@ -7,7 +7,8 @@ camera writing DNG brackets with photon and read noise, the M scene) scans:
 
 - **refined**: a line of ``--base`` beams, then ``--passes`` passes of ``ilt refine``
   adding ``--beams`` each, captured where refine aimed them (``[refine]`` in the config);
-- **uniform**: lines of ``--base`` and of base + passes x beams beams (the same rig time),
+- **uniform**: lines of ``--base`` beams and of each of ``--uniform`` (default: base +
+  passes x beams, the same rig time, and 2 x base),
   with ``px_per_beam`` scaled so every scan sees the same frame and ``spot`` (in beam
   spacings) so every scan has the same laser spot.
 
@@ -16,7 +17,9 @@ decompose). Errors: relative L2 of the full-resolution bounces 1-3 (decompose's
 bounce-N.exr, the green grid merge makes) of each photo against the renderer's exact
 bounces of the scan's own scene (in the units of its merged photo), over the pixels
 every scan covers. Prints a markdown
-table, the mean per scan, each run's time and the landing error of refine's beams.
+table, the mean per scan, each run's time, the **equivalent uniform beams** of the refined
+scan (the uniform beam count with its error, interpolated in log error between the
+uniform scans) and the landing error of refine's beams.
 """
 
 from __future__ import annotations
@@ -76,23 +79,32 @@ def coverage(ws: Workspace) -> np.ndarray:
     return read_exr(ws.stage_dir("decompose") / "room" / "coverage.exr")[0][..., 0] > 0
 
 
+def equivalent(uniform: list[tuple[int, float]], error: float) -> str:
+    """The uniform beam count with ``error``, interpolated in log error between the two
+    uniform scans around it (errors falling with beams); a bound when outside them."""
+    for (m0, e0), (m1, e1) in zip(uniform, uniform[1:]):
+        if e1 <= error <= e0 and e0 > e1:
+            return f"{m0 + (m1 - m0) * np.log(e0 / error) / np.log(e0 / e1):.1f}"
+    return f"more than {uniform[-1][0]}" if error < uniform[-1][1] else f"fewer than {uniform[0][0]}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--base", type=int, default=16)
     parser.add_argument("--passes", type=int, default=2)
     parser.add_argument("--beams", type=int, default=4)
+    parser.add_argument("--uniform", help="uniform beam counts besides --base (default: the refined count, 2 x base)")
     parser.add_argument("--keep", help="keep the workspaces here")
     args = parser.parse_args()
     total = args.base + args.passes * args.beams
     px = 16.0 * 32 / args.base     # configs/sim.toml's frame: 32 beams at 16 px
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(args.keep or scratch)
-        scans = {
-            f"uniform {args.base}": config(args.base, px),
-            f"refined {args.base} + {args.passes} x {args.beams}":
-                config(args.base, px, f"\n[refine]\npasses = {args.passes}\nbeams = {args.beams}\n"),
-            f"uniform {total}": config(total, px * args.base / total, spot=0.1 * total / args.base),
-        }
+        counts = sorted({int(c) for c in args.uniform.split(",")} if args.uniform else {total, 2 * args.base})
+        refined = f"refined {args.base} + {args.passes} x {args.beams}"
+        scans = {f"uniform {args.base}": config(args.base, px),
+                 refined: config(args.base, px, f"\n[refine]\npasses = {args.passes}\nbeams = {args.beams}\n")}
+        scans.update({f"uniform {c}": config(c, px * args.base / c, spot=0.1 * c / args.base) for c in counts})
         done = {name: run(root, name.replace(" ", "-").replace("+", "p"), text) for name, text in scans.items()}
         masks = [coverage(ws) for ws, _ in done.values()]
         shapes = {m.shape for m in masks}
@@ -109,10 +121,11 @@ def main() -> None:
             beams = len(json.loads((ws.stage_dir("capture") / "manifest.json").read_text())["beams"])
             print(f"| {name} | {beams} | " + " | ".join(f"{v:.4f}" for v in e.ravel()) +
                   f" | {means[name]:.4f} | {seconds:.1f} |")
-        names = list(done)
-        print(f"\nrefined / uniform {args.base}: {means[names[1]] / means[names[0]]:.3f}; "
-              f"refined / uniform {total}: {means[names[1]] / means[names[2]]:.3f}")
-        landing = json.loads((done[names[1]][0].root / "passes" / "landing.json").read_text())
+        uniform = sorted((int(n.split()[1]), e) for n, e in means.items() if n.startswith("uniform"))
+        print(f"\nrefined / uniform {args.base}: {means[refined] / means[f'uniform {args.base}']:.3f}; "
+              f"refined / uniform {total}: {means[refined] / means.get(f'uniform {total}', np.nan):.3f}")
+        print(f"equivalent uniform beams of the refined {total}: {equivalent(uniform, means[refined])}")
+        landing = json.loads((done[refined][0].root / "passes" / "landing.json").read_text())
         for p in landing["passes"]:
             print(f"pass {p['pass']}: {p['found']} of {p['beams']} new beams found, landing median "
                   f"{p['median_px']} px, max {p['max_px']} px")

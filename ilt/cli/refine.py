@@ -20,7 +20,8 @@ from ilt.cli.options import (
 @click.argument("isf_dir", required=False, type=click.Path(exists=True, file_okay=False))
 @stage_output_option
 @click.option("--beams", "beams", type=int, default=32, show_default=True,
-              help="At most this many new beams, best first.")
+              help="At most this many new beams, best first; they come in pairs (an edge between two "
+                   "spots split in thirds), so an odd number places one fewer.")
 @click.option("--capture", "capture", type=click.Path(exists=True, file_okay=False), default=None,
               help="The capture directory the ISF was built from, for pan/tilt and the unit's reach "
                    "(default: the workspace's capture/ when it has a manifest; none: pixels only).")
@@ -35,7 +36,8 @@ def command(isf_dir, output, beams, capture, min_spacing, workspace, force, as_j
     WORKSPACE/isf), and write -o (default WORKSPACE/refine).
 
     Neighbouring beams whose columns of T differ most (folds, occluding edges, texture)
-    get new beams between them, halfway, greedily by the expected gain; none lands
+    get two new beams between them, at the thirds (never on a fold halfway between
+    them), greedily by the expected gain; none lands
     outside the ISF's cells. Writes refine.csv (x,y in full-resolution sensor pixels,
     pan,tilt in the plan's units when the capture is known, gain; best first),
     refine.json (the indicator before and after), refine.png and manifest.json.

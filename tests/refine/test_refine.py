@@ -76,31 +76,32 @@ def test_the_residual_across_a_fold_is_the_hand_computed_one(monkeypatch):
     assert r == pytest.approx([0, 0, 0, fold, fold, 0, 0, 0], abs=1e-12)
 
 
-def test_the_first_beam_splits_the_fold_then_its_neighbours_edges():
+def test_the_first_pair_trisects_the_fold_then_its_neighbours_edges():
     samples = _line_samples(8, jitter=0.0)
-    placement = place_beams(_line_T(8, jump=3), samples, 3)
-    mids = (samples[:-1] + samples[1:]) / 2
-    assert np.allclose(placement.targets[0], mids[3])
-    # edges 2-3 and 4-5 hold half the fold edge's share: more than its halves' quarter
-    assert {tuple(np.round(t, 9)) for t in placement.targets[1:]} == {tuple(np.round(mids[k], 9)) for k in (2, 4)}
+    placement = place_beams(_line_T(8, jump=3), samples, 7)          # odd: one fewer
+    thirds = [samples[:-1] + (samples[1:] - samples[:-1]) * f for f in (1 / 3, 2 / 3)]
+    assert np.allclose(placement.targets[:2], [thirds[0][3], thirds[1][3]])
+    # edges 2-3 and 4-5 hold half the fold edge's share: more than its thirds' ninth
+    assert {tuple(np.round(t, 9)) for t in placement.targets[2:]} == \
+        {tuple(np.round(thirds[f][k], 9)) for k in (2, 4) for f in (0, 1)}
     lengths = np.linalg.norm(np.diff(samples, axis=0), axis=1)
     r2 = 5 * 0.05 ** 2 / (3 * 0.1 ** 2)
     share = np.array([lengths[3] * r2, lengths[2] * r2 / 2, lengths[4] * r2 / 2]) / lengths.sum()
-    assert sorted(placement.gain) == pytest.approx(sorted(share / 2), rel=1e-9)
+    assert sorted(placement.gain) == pytest.approx(sorted(np.repeat(share / 3, 2)), rel=1e-9)
     assert placement.before ** 2 - placement.after ** 2 == pytest.approx(placement.gain.sum(), rel=1e-9)
 
 
 def test_no_beam_lands_outside_the_cells_nor_closer_than_min_spacing():
     samples = _line_samples(8, jitter=0.0)
-    placement = place_beams(_line_T(8, jump=3), samples, 5, min_spacing=4.0,
-                            covered=lambda p: np.abs(p[:, 0] - 40.0) > 1.0)   # the fold's middle is off the surface
-    assert sorted(placement.targets[:, 0]) == pytest.approx([30.0, 50.0])
-    placement = place_beams(_line_T(8, jump=3), samples, 5, min_spacing=4.0)
-    assert len(placement.targets) == 3              # a half-edge of 5 px has no room for 4 px: no quarters
+    placement = place_beams(_line_T(8, jump=3), samples, 6, min_spacing=3.0,
+                            covered=lambda p: np.abs(p[:, 0] - 40.0) > 3.0)   # the fold's middle is off the surface
+    assert sorted(placement.targets[:, 0]) == pytest.approx([25 + 10 / 3, 25 + 20 / 3, 45 + 10 / 3, 45 + 20 / 3])
+    placement = place_beams(_line_T(8, jump=3), samples, 12, min_spacing=3.0)
+    assert len(placement.targets) == 6              # a third of 3.3 px has no room for 3 px: no ninths
 
 
 def test_zero_beams_is_refused():
-    with pytest.raises(RefineError, match="at least 1"):
+    with pytest.raises(RefineError, match="at least 2"):
         place_beams(_line_T(4, 1), _line_samples(4), 0)
 
 
@@ -126,12 +127,12 @@ def table(path):
 
 
 def test_refine_of_a_capture_gives_pixels_and_angles_between_its_beams(workspace):
-    result = run("refine", "-w", workspace, "--beams", 3)
+    result = run("refine", "-w", workspace, "--beams", 4)
     assert result.exit_code == 0, result.output
     out = workspace / "refine"
     assert result.stdout.strip() == str(out / "refine.csv")
     rows = table(out / "refine.csv")
-    assert len(rows) == 3 and list(rows[0]) == ["x", "y", "pan", "tilt", "gain"]
+    assert len(rows) == 4 and list(rows[0]) == ["x", "y", "pan", "tilt", "gain"]
     gains = [float(r["gain"]) for r in rows]
     assert gains == sorted(gains, reverse=True) and gains[-1] > 0
     plan = np.array(json.loads((workspace / "capture" / "manifest.json").read_text())["plan"]["targets"])
@@ -146,7 +147,7 @@ def test_refine_of_a_capture_gives_pixels_and_angles_between_its_beams(workspace
         assert pan == pytest.approx(np.interp(x, xs, pans), abs=0.05 * abs(pans[k] - pans[k - 1]))
         assert float(r["tilt"]) == pytest.approx(plan[0, 1], abs=1e-6)
     summary = json.loads((out / "refine.json").read_text())
-    assert summary["beams"] == 3 and summary["indicator"]["after"] < summary["indicator"]["before"]
+    assert summary["beams"] == 4 and summary["indicator"]["after"] < summary["indicator"]["before"]
     assert (out / "refine.png").stat().st_size > 0
     assert json.loads((out / "manifest.json").read_text())["stage"] == "refine"
 

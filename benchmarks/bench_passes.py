@@ -42,8 +42,14 @@ ROOT = Path(__file__).resolve().parents[1]
 PHOTOS = ("flashlight", "room", "projector")
 
 
-def config(beams: int, px_per_beam: float, refine: str = "", spot: float = 0.1) -> str:
+def config(beams: int, px_per_beam: float, refine: str = "", spot: float = 0.1, scene: str = "m") -> str:
+    """configs/sim.toml for ``beams`` beams of ``scene`` (the box: a grid of 3 n x n, as ilt demo's)."""
     text = (ROOT / "configs" / "sim.toml").read_text()
+    text = re.sub(r'scene = "\w+"', f'scene = "{scene}"', text)
+    if scene == "box":
+        n = round((beams / 3) ** 0.5)
+        plan = f'kind = "grid"\nunits = "degrees"\npan = [-10.0, 10.0]\ntilt = [-8.0, 6.0]\nshape = [{3 * n}, {n}]\n'
+        text = re.sub(r"\[plan\][^\[]*", "[plan]\n" + plan + "\n", text)
     text = re.sub(r"count = \d+", f"count = {beams}", text)
     text = re.sub(r"px_per_beam = [0-9.]+", f"px_per_beam = {px_per_beam!r}", text)
     text = re.sub(r"spot = [0-9.]+", f"spot = {spot!r}", text)
@@ -90,6 +96,7 @@ def equivalent(uniform: list[tuple[int, float]], error: float) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="m", help="m, occluded, textured (a line of beams) or box (a grid)")
     parser.add_argument("--base", type=int, default=16)
     parser.add_argument("--passes", type=int, default=2)
     parser.add_argument("--beams", type=int, default=4)
@@ -97,15 +104,19 @@ def main() -> None:
     parser.add_argument("--keep", help="keep the workspaces here")
     args = parser.parse_args()
     total = args.base + args.passes * args.beams
-    px = 16.0 * 32 / args.base     # configs/sim.toml's frame: 32 beams at 16 px
+    # configs/sim.toml's frame: 32 beams at 16 px; the box: ilt demo's 108 at 16 px
+    px = 16.0 * 32 / args.base if args.scene != "box" else 16.0 * (108 / args.base) ** 0.5
+    side = (lambda c: (c / args.base) ** 0.5) if args.scene == "box" else (lambda c: c / args.base)
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(args.keep or scratch)
         counts = sorted({int(c) for c in args.uniform.split(",")} if args.uniform else {total, 2 * args.base})
         refined = f"refined {args.base} + {args.passes} x {args.beams}"
-        scans = {f"uniform {args.base}": config(args.base, px),
-                 refined: config(args.base, px, f"\n[refine]\npasses = {args.passes}\nbeams = {args.beams}\n")}
-        scans.update({f"uniform {c}": config(c, px * args.base / c, spot=0.1 * c / args.base) for c in counts})
-        done = {name: run(root, name.replace(" ", "-").replace("+", "p"), text) for name, text in scans.items()}
+        scans = {f"uniform {args.base}": config(args.base, px, scene=args.scene),
+                 refined: config(args.base, px, f"\n[refine]\npasses = {args.passes}\nbeams = {args.beams}\n",
+                                 scene=args.scene)}
+        scans.update({f"uniform {c}": config(c, px / side(c), spot=0.1 * side(c), scene=args.scene) for c in counts})
+        done = {name: run(root, f"{args.scene}-" + name.replace(" ", "-").replace("+", "p"), text)
+                for name, text in scans.items()}
         masks = [coverage(ws) for ws, _ in done.values()]
         shapes = {m.shape for m in masks}
         if len(shapes) != 1:

@@ -49,7 +49,7 @@ def config(beams: int, px_per_beam: float, refine: str = "", spot: float = 0.1, 
     if scene == "box":
         n = round((beams / 3) ** 0.5)
         plan = f'kind = "grid"\nunits = "degrees"\npan = [-10.0, 10.0]\ntilt = [-8.0, 6.0]\nshape = [{3 * n}, {n}]\n'
-        text = re.sub(r"\[plan\][^\[]*", "[plan]\n" + plan + "\n", text)
+        text = re.sub(r"^\[plan\].*?(?=^\[|^# |\Z)", "[plan]\n" + plan + "\n", text, flags=re.S | re.M)
     text = re.sub(r"count = \d+", f"count = {beams}", text)
     text = re.sub(r"px_per_beam = [0-9.]+", f"px_per_beam = {px_per_beam!r}", text)
     text = re.sub(r"spot = [0-9.]+", f"spot = {spot!r}", text)

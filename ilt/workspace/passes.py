@@ -78,7 +78,7 @@ def parse_refine(section, where: str) -> RefineConfig:
     passes = number("passes", int, 0) or 0
     if passes > MAX_PASSES:
         raise ConfigError(f"{where}: passes = {passes}: at most {MAX_PASSES}")
-    beams, hours = number("beams", int, 1), number("hours", float, 0)
+    beams, hours = number("beams", int, 2), number("hours", float, 0)   # refine's beams come in pairs
     if beams is not None and hours is not None:
         raise ConfigError(f"{where}: beams and hours both given; keep one")
     if passes and beams is None and hours is None:
@@ -152,7 +152,8 @@ def beams_for_pass(cfg: RefineConfig, rig, passes: list[Pass], capture_dir: Path
     est = estimate(rig, logs)
     per_beam = est.seconds / max(est.beams, 1)
     left = cfg.hours * 3600 - per_beam * sum(p.beams for p in passes)
-    return max(0, int(left / per_beam / (cfg.passes - len(passes))))
+    beams = max(0, int(left / per_beam / (cfg.passes - len(passes))))
+    return beams if beams >= 2 else 0     # refine places pairs: one beam is none
 
 
 def run_refine_pass(ws: Workspace, cfg: RefineConfig, rig, passes: list[Pass]) -> Pass:

@@ -130,7 +130,7 @@ def test_another_pass_adds_only_its_beams_and_resumes_after_a_fault(refined):
     ("passes = 2", "passes = 2 needs beams = K"),
     ("passes = 1\nbeams = 4\nhours = 1.0", "beams and hours both given"),
     ("passes = -1\nbeams = 4", "passes = -1: must be a whole number >= 0"),
-    ("passes = 1\nbeams = 0", "beams = 0: must be a whole number >= 1"),
+    ("passes = 1\nbeams = 1", "beams = 1: must be a whole number >= 2"),
     ("passes = 1\nhours = 0", "hours = 0: must be a number >= 0 and > 0"),
     ("passes = 1\nbeam = 4", "unknown key 'beam'"),
 ])
@@ -173,7 +173,7 @@ def test_hours_share_the_rig_time_over_the_passes_left(tmp_path):
     cfg = RefineConfig(passes=2, hours=20 * per_beam / 3600)
     assert beams_for_pass(cfg, rig, [], tmp_path / "capture") == 10
     ws = Workspace(tmp_path / "ws")
-    none = RefineConfig(passes=2, hours=0.5 * per_beam / 3600)
+    none = RefineConfig(passes=2, hours=3.9 * per_beam / 3600)       # 1.95 beams a pass: not a pair
     done = run_refine_pass(ws, none, rig, [])
     assert done.beams == 0 and completed_passes(ws)[0].angles.shape == (0, 2)
     assert finished(none, [done])

@@ -56,10 +56,18 @@ def config(beams: int, px_per_beam: float, refine: str = "", spot: float = 0.1, 
     return text + refine
 
 
-def run(root: Path, name: str, text: str) -> tuple[Workspace, float]:
+def run(root: Path, name: str, text: str, added: np.ndarray | None = None) -> tuple[Workspace, float]:
+    """``ilt run`` of ``text`` in ``root/name``; ``added``: (k, 2) pan/tilt written as a
+    done refine pass first (a random scan's beams, shot as a pass's are)."""
     ws = Workspace(root / name)
     ws.root.mkdir(parents=True, exist_ok=True)
     (ws.root / "config.toml").write_text(text)
+    if added is not None and not (ws.root / "passes" / "pass-1" / "manifest.json").exists():
+        d = ws.root / "passes" / "pass-1"
+        d.mkdir(parents=True, exist_ok=True)
+        with open(d / "refine.csv", "w") as f:
+            f.write("x,y,pan,tilt,gain\n" + "".join(f"0,0,{float(p)!r},{float(t)!r},0\n" for p, t in added))
+        (d / "manifest.json").write_text('{"stage": "random"}\n')
     t0 = time.monotonic()
     run_pipeline(ws, load_run_config(ws.root / "config.toml"))
     return ws, time.monotonic() - t0
@@ -101,6 +109,8 @@ def main() -> None:
     parser.add_argument("--passes", type=int, default=2)
     parser.add_argument("--beams", type=int, default=4)
     parser.add_argument("--uniform", help="uniform beam counts besides --base (default: the refined count, 2 x base)")
+    parser.add_argument("--random", type=int, default=0,
+                        help="also this many scans of base + passes x beams beams at random angles in the plan's range")
     parser.add_argument("--keep", help="keep the workspaces here")
     args = parser.parse_args()
     total = args.base + args.passes * args.beams
@@ -117,6 +127,12 @@ def main() -> None:
         scans.update({f"uniform {c}": config(c, px / side(c), spot=0.1 * side(c), scene=args.scene) for c in counts})
         done = {name: run(root, f"{args.scene}-" + name.replace(" ", "-").replace("+", "p"), text)
                 for name, text in scans.items()}
+        rng = np.random.default_rng(0)
+        for d in range(args.random):   # flatland: pan uniform over the line's range, tilt 0
+            pans = rng.uniform(-20.0, 20.0, args.passes * args.beams)
+            done[f"random {d}"] = run(root, f"{args.scene}-random-{d}", config(
+                args.base, px, f"\n[refine]\npasses = 1\nbeams = {args.passes * args.beams}\n", scene=args.scene),
+                np.column_stack([pans, np.zeros_like(pans)]))
         masks = [coverage(ws) for ws, _ in done.values()]
         shapes = {m.shape for m in masks}
         if len(shapes) != 1:
@@ -133,6 +149,10 @@ def main() -> None:
             print(f"| {name} | {beams} | " + " | ".join(f"{v:.4f}" for v in e.ravel()) +
                   f" | {means[name]:.4f} | {seconds:.1f} |")
         uniform = sorted((int(n.split()[1]), e) for n, e in means.items() if n.startswith("uniform"))
+        randoms = [e for n, e in means.items() if n.startswith("random")]
+        if randoms:
+            print(f"\nrandom (median of {len(randoms)}): {np.median(randoms):.4f}; refined / random "
+                  f"{means[refined] / np.median(randoms):.3f}")
         print(f"\nrefined / uniform {args.base}: {means[refined] / means[f'uniform {args.base}']:.3f}; "
               f"refined / uniform {total}: {means[refined] / means.get(f'uniform {total}', np.nan):.3f}")
         print(f"equivalent uniform beams of the refined {total}: {equivalent(uniform, means[refined])}")

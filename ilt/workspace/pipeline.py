@@ -501,7 +501,11 @@ def workspace_status(ws: Workspace, cfg: RunConfig, verify: str | None = None) -
     """Each stage's state against ``cfg`` (:func:`assess_stages`); with [refine] passes,
     a "refine" line after build-isf: the passes done and the beams each added."""
     passes = completed_passes(ws)
-    states = [a.state for a in assess_stages(plan_stages(ws, cfg, passes=passes), verify)]
+    stages = plan_stages(ws, cfg, passes=passes)
+    states = [a.state for a in assess_stages(stages, verify)]
+    if states[0].state == STALE and extends(stages[0].directory, stages[0].parameters):
+        states[0] = StageState("capture", states[0].directory, MISSING,
+                               f"refine pass {len(passes)}: its beams to shoot ('ilt run' adds them)")
     if cfg.refine.passes or passes:
         states.insert(4, refine_state(ws, cfg, passes))
     return states

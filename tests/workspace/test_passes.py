@@ -115,6 +115,8 @@ def test_another_pass_adds_only_its_beams_and_resumes_after_a_fault(refined):
     faulty.write_text(text.replace("emulator_speed = 20000", 'emulator_speed = 20000\nemulator_faults = ["unplug:PP@4"]'))
     result = invoke("run", str(faulty), "-w", str(ws))
     assert result.exit_code == 1 and "disconnected" in result.output, result.output
+    status = invoke("status", str(faulty), "-w", str(ws)).stdout
+    assert "capture    missing: refine pass 2: its beams to shoot" in status, status
     assert sum(r["event"] == "beam_done" for r in read_log(log)) == shot + 1
     config.write_text(text)
     result = invoke("run", str(config), "-w", str(ws), "--json")

@@ -25,6 +25,7 @@ uniform scans) and the landing error of refine's beams.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import re
 import tempfile
@@ -49,7 +50,7 @@ def config(beams: int, px_per_beam: float, refine: str = "", spot: float = 0.1, 
     if scene == "box":
         n = round((beams / 3) ** 0.5)
         plan = f'kind = "grid"\nunits = "degrees"\npan = [-10.0, 10.0]\ntilt = [-8.0, 6.0]\nshape = [{3 * n}, {n}]\n'
-        text = re.sub(r"^\[plan\].*?(?=^\[|^# |\Z)", "[plan]\n" + plan + "\n", text, flags=re.S | re.M)
+        text = re.sub(r"^\[plan\].*?(?=^\[|^# |\Z)", "[plan]\n" + plan + "\n", text, flags=re.DOTALL | re.MULTILINE)
     text = re.sub(r"count = \d+", f"count = {beams}", text)
     text = re.sub(r"px_per_beam = [0-9.]+", f"px_per_beam = {px_per_beam!r}", text)
     text = re.sub(r"spot = [0-9.]+", f"spot = {spot!r}", text)
@@ -96,7 +97,7 @@ def coverage(ws: Workspace) -> np.ndarray:
 def equivalent(uniform: list[tuple[int, float]], error: float) -> str:
     """The uniform beam count with ``error``, interpolated in log error between the two
     uniform scans around it (errors falling with beams); a bound when outside them."""
-    for (m0, e0), (m1, e1) in zip(uniform, uniform[1:]):
+    for (m0, e0), (m1, e1) in itertools.pairwise(uniform):
         if e1 <= error <= e0 and e0 > e1:
             return f"{m0 + (m1 - m0) * np.log(e0 / error) / np.log(e0 / e1):.1f}"
     return f"more than {uniform[-1][0]}" if error < uniform[-1][1] else f"fewer than {uniform[0][0]}"

@@ -192,7 +192,7 @@ class RenderedScene:
         scattered = self.radiosity(direct) - direct
         return (self.spot_image(j) + self.to_frame(scattered)).astype(np.float32)
 
-    def beam_between(self, position) -> "RenderedScene":
+    def beam_between(self, position) -> RenderedScene:
         """The scene with one beam landing at a fractional plan position ``(col, row)``
         (``(col,)`` on a line): between the plan's beams, as a pan-tilt unit aimed between
         their angles puts it. Inside a face the point, footprint and spot centre are the

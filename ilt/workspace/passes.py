@@ -214,11 +214,10 @@ def write_landing(ws: Workspace, passes: list[Pass], base_m: int) -> dict | None
                          "median_px": float(np.median(errors)) if errors else None,
                          "max_px": float(np.max(errors)) if errors else None})
     directory = passes_dir(ws)
-    with atomic_path(directory / LANDING_CSV) as tmp:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["pass", "beam", "target_x", "target_y", "spot_x", "spot_y", "error_px", "flags"])
-            w.writerows(lines)
+    with atomic_path(directory / LANDING_CSV) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["pass", "beam", "target_x", "target_y", "spot_x", "spot_y", "error_px", "flags"])
+        w.writerows(lines)
     summary = {"passes": per_pass}
     write_json(directory / LANDING_JSON, summary)
     for s in per_pass[-1:]:

@@ -11,6 +11,7 @@ import json
 import logging
 import os
 import shutil
+import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -36,7 +37,7 @@ from ilt.isf.directory import ISF
 from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
 from ilt.isf.layout import sample_frame, splat, vector_to_image
 from ilt.isf.noise import NOISE_FILE, read_noise
-from ilt.isf.spill import SPILL_FILE, mix, unmix
+from ilt.isf.spill import SPILL_FILE, mix, unmix, unmix_columns
 from ilt.transport.compressed import grid_points
 from ilt.transport.diagnostics import decomposition_diagnostics, operator_diagnostics
 from ilt.transport.operators import (
@@ -467,7 +468,31 @@ def decompose(
     if noise is None:   # the frames' noise, carried into T by build-isf (ilt.isf.noise), when it measured it
         noise, noise_source = frames_noise(isf.path)
     Q = isf.spill if spill and isf.spill is not None and isf.spill.nnz else None
-    T_op, op_fingerprint = (isf.T, fingerprint) if Q is None else (unmix(Q, np.asarray(isf.T)), None)
+    scratch = None
+    if Q is None:
+        T_op, op_fingerprint = isf.T, fingerprint
+    elif isinstance(isf.T, np.memmap):   # a memory-mapped T stays out of memory: so does (I + Q)^-1 T
+        scratch = tempfile.TemporaryDirectory(prefix="ilt-unmixed-", dir=cache_dir if cache_dir and
+                                              Path(cache_dir).is_dir() else None)
+        T_op = unmix_columns(Q, isf.T, np.lib.format.open_memmap(Path(scratch.name) / "T.npy", mode="w+",
+                                                                 dtype=np.float64, shape=isf.T.shape))
+        op_fingerprint = None
+    else:
+        T_op, op_fingerprint = unmix(Q, np.asarray(isf.T)), None
+    try:
+        return _decompose_with(isf, photos, todo, done, out, T_op, op_fingerprint, Q, fine, why, hashes, fingerprint,
+                               parameters, n_bounces, tol, cache_dir, force, solver, noise, noise_source,
+                               regularise, executor)
+    finally:
+        if scratch is not None:
+            del T_op
+            scratch.cleanup()
+
+
+def _decompose_with(isf, photos, todo, done, out, T_op, op_fingerprint, Q, fine, why, hashes, fingerprint,
+                    parameters, n_bounces, tol, cache_dir, force, solver, noise, noise_source, regularise,
+                    executor) -> list[dict]:
+    """The rest of :func:`decompose`, on the operator's matrix ``T_op`` (T, or (I + Q)^-1 T)."""
     try:
         op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
                                     isf.samples, fingerprint=op_fingerprint, executor=executor,

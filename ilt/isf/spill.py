@@ -140,6 +140,18 @@ def unmix(Q: scipy.sparse.spmatrix, values: np.ndarray) -> np.ndarray:
     return out.reshape(values.shape)
 
 
+def unmix_columns(Q: scipy.sparse.spmatrix, T: np.ndarray, out: np.ndarray, block: int = 1024) -> np.ndarray:
+    """``out[:] = (I + Q)^-1 T`` a block of columns at a time (T and ``out`` may be memory
+    maps: nothing m x m is held in memory). One sparse LU for every block."""
+    import scipy.sparse.linalg
+
+    m = Q.shape[0]
+    lu = scipy.sparse.linalg.splu((scipy.sparse.identity(m, format="csc") + Q.tocsc()).tocsc())
+    for c0 in range(0, T.shape[1], block):
+        out[:, c0:c0 + block] = lu.solve(np.ascontiguousarray(T[:, c0:c0 + block], dtype=np.float64))
+    return out
+
+
 def mix(Q: scipy.sparse.spmatrix, values: np.ndarray) -> np.ndarray:
     """``(I + Q) values`` for values of shape (m, ...)."""
     values = np.asarray(values, dtype=np.float64)

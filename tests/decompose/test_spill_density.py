@@ -7,6 +7,9 @@ user runs them; errors of the full-resolution bounces 1-3 against the renderer's
 the pixels both scans cover.
 """
 
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -82,3 +85,24 @@ def test_the_bounces_still_sum_to_the_photo(scans):
         total = sum(read_exr(d / f"bounce-{n}.exr")[0] for n in range(1, 7)) + read_exr(d / "residual.exr")[0]
         photo = read_exr(out["dense"] / f"{k}.exr")[0]
         np.testing.assert_allclose(total, photo, rtol=0, atol=2e-5 * np.abs(photo).max())
+
+
+def test_a_memory_mapped_t_is_unmixed_on_disk_to_the_same_bounces(scans, tmp_path, monkeypatch):
+    out, _ = scans
+    isf = load_isf(out["dense"] / "isf", mmap=True)
+    assert isinstance(isf.T, np.memmap)
+    photo = out["dense"] / "room.exr"
+    (tmp_path / "cache").mkdir()
+    made = []
+    real = tempfile.TemporaryDirectory
+
+    def recording(*args, **kwargs):
+        made.append(real(*args, **kwargs))
+        return made[-1]
+
+    monkeypatch.setattr(tempfile, "TemporaryDirectory", recording)
+    decompose(isf, [photo], tmp_path / "dec", n_bounces=6, cache_dir=tmp_path / "cache")
+    assert len(made) == 1 and Path(made[0].name).parent == tmp_path / "cache"
+    np.testing.assert_allclose(np.load(tmp_path / "dec" / "room" / "bounces.npy"),
+                               np.load(out["dense"] / "dec-True" / "room" / "bounces.npy"), rtol=0, atol=1e-12)
+    assert not list((tmp_path / "cache").glob("ilt-unmixed-*"))     # the unmixed T is removed after

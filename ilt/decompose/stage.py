@@ -6,6 +6,7 @@ so decomposing the next photo of the same scene costs only the solves.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -37,12 +38,11 @@ from ilt.isf.directory import ISF
 from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
 from ilt.isf.layout import sample_frame, splat, vector_to_image
 from ilt.isf.noise import NOISE_FILE, read_noise
-from ilt.isf.spill import SPILL_FILE, mix, unmix, unmix_columns
+from ilt.isf.spill import SPILL_FILE, Unmixing
 from ilt.transport.compressed import grid_points
 from ilt.transport.diagnostics import decomposition_diagnostics, operator_diagnostics
 from ilt.transport.operators import (
     CancellationOperator,
-    Decomposition,
     bounce_images,
     cancellation_operator,
 )
@@ -467,85 +467,93 @@ def decompose(
     noise_source = "given"
     if noise is None:   # the frames' noise, carried into T by build-isf (ilt.isf.noise), when it measured it
         noise, noise_source = frames_noise(isf.path)
-    Q = isf.spill if spill and isf.spill is not None and isf.spill.nnz else None
-    scratch = None
-    if Q is None:
-        T_op, op_fingerprint = isf.T, fingerprint
-    elif isinstance(isf.T, np.memmap):   # a memory-mapped T stays out of memory: so does (I + Q)^-1 T
-        scratch = tempfile.TemporaryDirectory(prefix="ilt-unmixed-", dir=cache_dir if cache_dir and
-                                              Path(cache_dir).is_dir() else None)
-        T_op = unmix_columns(Q, isf.T, np.lib.format.open_memmap(Path(scratch.name) / "T.npy", mode="w+",
-                                                                 dtype=np.float64, shape=isf.T.shape))
-        op_fingerprint = None
-    else:
-        T_op, op_fingerprint = unmix(Q, np.asarray(isf.T)), None
-    try:
-        return _decompose_with(isf, photos, todo, done, out, T_op, op_fingerprint, Q, fine, why, hashes, fingerprint,
-                               parameters, n_bounces, tol, cache_dir, force, solver, noise, noise_source,
-                               regularise, executor)
-    finally:
-        if scratch is not None:
-            del T_op
-            scratch.cleanup()
-
-
-def _decompose_with(isf, photos, todo, done, out, T_op, op_fingerprint, Q, fine, why, hashes, fingerprint,
-                    parameters, n_bounces, tol, cache_dir, force, solver, noise, noise_source, regularise,
-                    executor) -> list[dict]:
-    """The rest of :func:`decompose`, on the operator's matrix ``T_op`` (T, or (I + Q)^-1 T)."""
-    try:
-        op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
-                                    isf.samples, fingerprint=op_fingerprint, executor=executor,
-                                    noise_source=noise_source)
-    except TransportError as exc:
-        raise TransportError(f"{isf.path}: {exc}") from None
-    if Q is not None:
-        op_diag["spill"] = {"entries": int(Q.nnz), "mean_share": float(Q.sum() / isf.m),
-                            "operator_of": "(I + Q)^-1 T", "fingerprint": op_diag["fingerprint"]}
-        log.info("%s: the spots' direct light in other cells (%d entries, %.2g of a spot's on average) "
-                 "is taken out of T before inverting", isf.path, Q.nnz, Q.sum() / isf.m)
-    for w in op_diag["warnings"]:
-        log.warning("%s: %s", isf.path, w)
-    created = not out.exists()
-    summaries = {}
-    try:
-        for photo in todo:
-            weights = None
-            if Q is None:
-                dec = bounce_images(op, photo.values, n_bounces=n_bounces, tol=tol)
-            else:
-                unmixed = bounce_images(op, unmix(Q, photo.values), n_bounces=n_bounces, tol=tol)
-                t1 = op.t1[None, :, None] if unmixed.bounces.ndim == 3 else op.t1[None, :]
-                weights = unmixed.bounces / t1
-                dec = remix(Q, unmixed, photo.values)
-            diag = decomposition_diagnostics(photo.values, dec)
-            for w in diag["warnings"]:
-                log.warning("%s: %s", photo.path, w)
-            full = fine is not None and photo.frame
-            summary = {
-                "input": str(photo.path),
-                "input_fingerprint": hashes[photo.name],
-                "isf": str(isf.path),
-                "operators": op_diag,
-                "decomposition": diag,
-                "full_resolution": _full_resolution_summary(photo, fine, why),
-            }
-            if full and photo.saturated is not None:
-                log.warning("%s: %d saturated pixels (values are lower bounds) left out of the full-resolution "
-                            "images (coverage 0, all residual)", photo.path, int(photo.saturated.sum()))
-            with staged_directory(out / photo.name, force=force) as tmp:
-                write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1, weights)
-                write_manifest(
-                    tmp, "decompose", parameters,
-                    inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): fingerprint},
-                )
-            log.info("%s -> %s (%s)", photo.path, out / photo.name, diag["stop_reason"])
-            summaries[photo.name] = {**summary, "output": str(out / photo.name)}
-    except BaseException:
-        if created and out.exists() and not any(out.iterdir()):
-            out.rmdir()
-        raise
+    with contextlib.ExitStack() as stack:
+        spilled = _unmixing(isf, spill)
+        T_op = isf.T if spilled is None else _unmixed_T(isf, spilled, cache_dir, stack)
+        try:
+            op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
+                                        isf.samples, fingerprint=fingerprint if spilled is None else None,
+                                        executor=executor, noise_source=noise_source)
+        except TransportError as exc:
+            raise TransportError(f"{isf.path}: {exc}") from None
+        if spilled is not None:
+            Q = spilled.Q
+            op_diag["spill"] = {"entries": int(Q.nnz), "mean_share": float(Q.sum() / isf.m),
+                                "operator_of": "(I + Q)^-1 T", "fingerprint": op_diag["fingerprint"]}
+            log.info("%s: the spots' direct light in other cells (%d entries, %.2g of a spot's on average) "
+                     "is taken out of T before inverting", isf.path, Q.nnz, Q.sum() / isf.m)
+        for w in op_diag["warnings"]:
+            log.warning("%s: %s", isf.path, w)
+        created = not out.exists()
+        summaries = {}
+        try:
+            for photo in todo:
+                dec, weights = _split(op, spilled, photo.values, n_bounces, tol)
+                diag = decomposition_diagnostics(photo.values, dec)
+                for w in diag["warnings"]:
+                    log.warning("%s: %s", photo.path, w)
+                full = fine is not None and photo.frame
+                summary = {
+                    "input": str(photo.path),
+                    "input_fingerprint": hashes[photo.name],
+                    "isf": str(isf.path),
+                    "operators": op_diag,
+                    "decomposition": diag,
+                    "full_resolution": _full_resolution_summary(photo, fine, why),
+                }
+                if full and photo.saturated is not None:
+                    log.warning("%s: %d saturated pixels (values are lower bounds) left out of the full-resolution "
+                                "images (coverage 0, all residual)", photo.path, int(photo.saturated.sum()))
+                with staged_directory(out / photo.name, force=force) as tmp:
+                    write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1, weights)
+                    write_manifest(
+                        tmp, "decompose", parameters,
+                        inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): fingerprint},
+                    )
+                log.info("%s -> %s (%s)", photo.path, out / photo.name, diag["stop_reason"])
+                summaries[photo.name] = {**summary, "output": str(out / photo.name)}
+        except BaseException:
+            if created and out.exists() and not any(out.iterdir()):
+                out.rmdir()
+            raise
+        del op, T_op   # before the stack removes a memory-mapped unmixed T
     return [done.get(p.name) or summaries[p.name] for p in photos]
+
+
+def _spill_used(isf: ISF, spill: bool) -> bool:
+    """Whether the split takes the ISF's spill out: asked, measured and not empty."""
+    return bool(spill and isf.spill is not None and isf.spill.nnz)
+
+
+def _unmixing(isf: ISF, spill: bool) -> Unmixing | None:
+    """``I + Q`` of the ISF's spill matrix, factorised (None: not used, :func:`_spill_used`)."""
+    return Unmixing(isf.spill) if _spill_used(isf, spill) else None
+
+
+def _unmixed_T(isf: ISF, spilled: Unmixing, cache_dir, stack: contextlib.ExitStack) -> np.ndarray:
+    """``(I + Q)^-1 T``: for a memory-mapped T, a memory map in a temporary directory beside
+    the operator cache (``stack`` removes it), written a block of columns at a time."""
+    if not isinstance(isf.T, np.memmap):
+        return spilled.unmix(np.asarray(isf.T))
+    scratch = stack.enter_context(tempfile.TemporaryDirectory(
+        prefix="ilt-unmixed-", dir=cache_dir if cache_dir and Path(cache_dir).is_dir() else None))
+    out = np.lib.format.open_memmap(Path(scratch) / "T.npy", mode="w+", dtype=np.float64, shape=isf.T.shape)
+    return spilled.unmix(isf.T, out=out)
+
+
+def _split(op, spilled: Unmixing | None, values: np.ndarray, n_bounces: int, tol: float):
+    """The bounces of sample vectors and, with a spill, the beam weights of each bounce's
+    re-emitted light for the full-resolution images (:func:`ilt.decompose.fullres.full_resolution`):
+    the recursion on ``(I + Q)^-1 values``, its bounces and residual mixed back by ``I + Q``."""
+    if spilled is None:
+        return bounce_images(op, values, n_bounces=n_bounces, tol=tol), None
+    unmixed = bounce_images(op, spilled.unmix(values), n_bounces=n_bounces, tol=tol)
+    t1 = op.t1[None, :, None] if unmixed.bounces.ndim == 3 else op.t1[None, :]
+    bounces = np.moveaxis(spilled.mix(np.moveaxis(unmixed.bounces, 0, 1)), 1, 0)
+    total = np.linalg.norm(values, axis=0)
+    norms = np.linalg.norm(bounces, axis=1) / np.where(total > 0, total, 1.0)
+    mixed = replace(unmixed, bounces=bounces, residual=spilled.mix(unmixed.residual), relative_norms=norms)
+    return mixed, unmixed.bounces / t1
 
 
 def frames_noise(isf_dir) -> tuple[float | None, str]:
@@ -574,20 +582,9 @@ def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver:
     directory = Path(isf.path).parent
     manifest = directory / FINE_DIR / MANIFEST
     fine = None if samples_only or not manifest.exists() else fingerprint_file(manifest)
-    used = spill and isf.spill is not None and isf.spill.nnz
     return {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
             "samples_only": samples_only, "fine": fine,
-            "spill": fingerprint_file(directory / SPILL_FILE) if used else None}
-
-
-def remix(Q, unmixed: Decomposition, photo: np.ndarray) -> Decomposition:
-    """The bounces of ``photo`` from those of ``(I + Q)^-1 photo`` (:mod:`ilt.isf.spill`):
-    each ``L_n`` and the residual times ``I + Q`` (so they still sum to the photo)."""
-    bounces = mix(Q, unmixed.bounces.transpose(1, 0, *range(2, unmixed.bounces.ndim)))
-    bounces = bounces.transpose(1, 0, *range(2, bounces.ndim))
-    total = np.linalg.norm(photo, axis=0)
-    norms = np.linalg.norm(bounces, axis=1) / np.where(total > 0, total, 1.0)
-    return replace(unmixed, bounces=bounces, residual=mix(Q, unmixed.residual), relative_norms=norms)
+            "spill": fingerprint_file(directory / SPILL_FILE) if _spill_used(isf, spill) else None}
 
 
 def previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dict | None:

@@ -127,33 +127,31 @@ def spill_matrix(columns: list[dict[int, float]], m: int) -> scipy.sparse.csr_ma
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(m, m))
 
 
-def unmix(Q: scipy.sparse.spmatrix, values: np.ndarray) -> np.ndarray:
-    """``(I + Q)^-1 values`` for values of shape (m, ...) (sparse LU: Q holds a few entries
-    a column)."""
-    import scipy.sparse.linalg
+class Unmixing:
+    """``I + Q`` factorised once (sparse LU: Q holds a few entries a column): ``unmix``
+    solves with it, ``mix`` multiplies by it; values of shape (m, ...)."""
 
-    values = np.asarray(values, dtype=np.float64)
-    m = Q.shape[0]
-    lu = scipy.sparse.linalg.splu((scipy.sparse.identity(m, format="csc") + Q.tocsc()).tocsc())
-    flat = values.reshape(m, -1)
-    out = lu.solve(np.ascontiguousarray(flat)) if flat.shape[1] else flat.copy()
-    return out.reshape(values.shape)
+    def __init__(self, Q: scipy.sparse.spmatrix):
+        import scipy.sparse.linalg
 
+        self.Q = Q.tocsr()
+        self.m = Q.shape[0]
+        self._lu = scipy.sparse.linalg.splu((scipy.sparse.identity(self.m, format="csc") + Q.tocsc()).tocsc())
 
-def unmix_columns(Q: scipy.sparse.spmatrix, T: np.ndarray, out: np.ndarray, block: int = 1024) -> np.ndarray:
-    """``out[:] = (I + Q)^-1 T`` a block of columns at a time (T and ``out`` may be memory
-    maps: nothing m x m is held in memory). One sparse LU for every block."""
-    import scipy.sparse.linalg
+    def unmix(self, values: np.ndarray, out: np.ndarray | None = None, block: int = 1024) -> np.ndarray:
+        """``(I + Q)^-1 values``; with ``out`` (e.g. a memory map), written there a block of
+        ``block`` columns at a time, so nothing the size of ``values`` is held in memory."""
+        if out is not None:
+            for c0 in range(0, values.shape[1], block):
+                out[:, c0:c0 + block] = self._lu.solve(np.ascontiguousarray(values[:, c0:c0 + block],
+                                                                            dtype=np.float64))
+            return out
+        values = np.asarray(values, dtype=np.float64)
+        flat = values.reshape(self.m, -1)
+        return (self._lu.solve(np.ascontiguousarray(flat)) if flat.shape[1] else flat.copy()).reshape(values.shape)
 
-    m = Q.shape[0]
-    lu = scipy.sparse.linalg.splu((scipy.sparse.identity(m, format="csc") + Q.tocsc()).tocsc())
-    for c0 in range(0, T.shape[1], block):
-        out[:, c0:c0 + block] = lu.solve(np.ascontiguousarray(T[:, c0:c0 + block], dtype=np.float64))
-    return out
-
-
-def mix(Q: scipy.sparse.spmatrix, values: np.ndarray) -> np.ndarray:
-    """``(I + Q) values`` for values of shape (m, ...)."""
-    values = np.asarray(values, dtype=np.float64)
-    flat = values.reshape(values.shape[0], -1)
-    return (flat + Q @ flat).reshape(values.shape)
+    def mix(self, values: np.ndarray) -> np.ndarray:
+        """``(I + Q) values``."""
+        values = np.asarray(values, dtype=np.float64)
+        flat = values.reshape(self.m, -1)
+        return (flat + self.Q @ flat).reshape(values.shape)

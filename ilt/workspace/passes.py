@@ -103,31 +103,32 @@ class Pass:
         return len(self.angles)
 
 
-def passes_dir(ws: Workspace) -> Path:
-    return ws.passes
-
-
 def pass_dir(ws: Workspace, number: int) -> Path:
-    return passes_dir(ws) / f"pass-{number}"
+    return ws.passes / f"pass-{number}"
 
 
 def completed_passes(ws: Workspace) -> list[Pass]:
-    """The passes with a manifest, 1, 2, ... up to the first missing one. StageError
-    naming the file when a pass's refine.csv has no pan/tilt or cannot be read."""
-    from ilt.refine.stage import CSV_FILE
-
+    """The passes with a manifest, 1, 2, ... up to the first missing one (:func:`read_pass`)."""
     out = []
     while (d := pass_dir(ws, len(out) + 1)).is_dir() and (d / MANIFEST).is_file():
-        path = d / CSV_FILE
-        try:
-            with open(path, newline="") as f:
-                rows = list(csv.DictReader(f))
-            angles = np.array([[float(r["pan"]), float(r["tilt"])] for r in rows]).reshape(-1, 2)
-            pixels = np.array([[float(r["x"]), float(r["y"])] for r in rows]).reshape(-1, 2)
-        except (OSError, KeyError, ValueError, TypeError) as exc:
-            raise StageError(f"{path}: not a refine pass's beams with pan and tilt ({exc})") from None
-        out.append(Pass(len(out) + 1, d, angles, pixels, fingerprint_file(path)))
+        out.append(read_pass(d, len(out) + 1))
     return out
+
+
+def read_pass(directory: Path, number: int) -> Pass:
+    """Pass ``number`` from its directory's refine.csv. StageError naming the file when it
+    has no pan/tilt or cannot be read."""
+    from ilt.refine.stage import CSV_FILE
+
+    path = directory / CSV_FILE
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        angles = np.array([[float(r["pan"]), float(r["tilt"])] for r in rows]).reshape(-1, 2)
+        pixels = np.array([[float(r["x"]), float(r["y"])] for r in rows]).reshape(-1, 2)
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise StageError(f"{path}: not a refine pass's beams with pan and tilt ({exc})") from None
+    return Pass(number, directory, angles, pixels, fingerprint_file(path))
 
 
 def passes_parameter(passes: list[Pass]) -> list[dict]:
@@ -173,7 +174,7 @@ def run_refine_pass(ws: Workspace, cfg: RefineConfig, rig, passes: list[Pass]) -
                          min_spacing=cfg.min_spacing, force=True)
         log.info("refine pass %d: %d new beams (indicator %.3g -> %.3g) -> %s", number, summary["beams"],
                  summary["indicator"]["before"], summary["indicator"]["after"], out / "refine.csv")
-    return completed_passes(ws)[number - 1]
+    return read_pass(out, number)
 
 
 def _write_empty_pass(out: Path, number: int) -> None:
@@ -187,17 +188,17 @@ def _write_empty_pass(out: Path, number: int) -> None:
 
 
 def write_landing(ws: Workspace, passes: list[Pass], base_m: int) -> dict | None:
-    """``passes/landing.csv`` and ``landing.json`` from the workspace's ISF: for each
+    """``passes/landing.csv`` and ``landing.json`` from the workspace's ISF spots
+    (``samples.csv``: where each kept beam's spot is): for each
     beam a pass added (capture beams ``base_m`` on, in pass order), the target pixel,
     the spot found and their distance (full-resolution pixels); "dropped" when the ISF
     has no spot for it. Returns the summary (None without passes)."""
-    from ilt.isf.directory import load_isf
+    from ilt.isf.directory import SAMPLES_FILE, read_samples_with_beams
 
     if not passes:
         return None
-    isf = load_isf(ws.stage_dir("build-isf"), mmap=True)
-    rows = np.arange(isf.m) if isf.beams is None else np.asarray(isf.beams)
-    spot_of = dict(zip(rows.tolist(), np.asarray(isf.samples, dtype=np.float64)))
+    samples, beams = read_samples_with_beams(ws.stage_dir("build-isf") / SAMPLES_FILE)
+    spot_of = dict(zip(beams.tolist(), samples))
     lines, per_pass = [], []
     beam = base_m
     for p in passes:
@@ -213,7 +214,7 @@ def write_landing(ws: Workspace, passes: list[Pass], base_m: int) -> dict | None
         per_pass.append({"pass": p.number, "beams": p.beams, "found": len(errors),
                          "median_px": float(np.median(errors)) if errors else None,
                          "max_px": float(np.max(errors)) if errors else None})
-    directory = passes_dir(ws)
+    directory = ws.passes
     with atomic_path(directory / LANDING_CSV) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["pass", "beam", "target_x", "target_y", "spot_x", "spot_y", "error_px", "flags"])
@@ -229,7 +230,7 @@ def write_landing(ws: Workspace, passes: list[Pass], base_m: int) -> dict | None
 
 
 def read_landing(ws: Workspace) -> dict | None:
-    path = passes_dir(ws) / LANDING_JSON
+    path = ws.passes / LANDING_JSON
     try:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
@@ -238,7 +239,7 @@ def read_landing(ws: Workspace) -> dict | None:
 
 def set_aside(ws: Workspace) -> Path | None:
     """Move ``passes/`` to ``passes.previous-N`` (a scan started again keeps the old decisions)."""
-    d = passes_dir(ws)
+    d = ws.passes
     if not d.exists():
         return None
     k = 1

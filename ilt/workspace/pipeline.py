@@ -45,6 +45,7 @@ import numpy as np
 
 from ilt.capture.config import ConfigError, RigConfig, parse_config
 from ilt.capture.loop import capture
+from ilt.capture.plan import planned_beams
 from ilt.io.atomic import atomic_path
 from ilt.io.manifest import LOG_NAME, MANIFEST, StageError, fingerprint_file, write_manifest
 from ilt.io.stage import (
@@ -62,7 +63,7 @@ from ilt.io.stage import (
     write_record,
 )
 from ilt.io.staged import staged_directory
-from ilt.io.workspace_dirs import STAGE_DIRS, Workspace
+from ilt.io.workspace_dirs import PASSES, STAGE_DIRS, Workspace
 from ilt.parallel.cluster import ClusterConfig
 from ilt.workspace.options import BUILD_ISF, CENTROIDS, DECOMPOSE, MERGE, StageOption
 from ilt.workspace.passes import (
@@ -71,9 +72,9 @@ from ilt.workspace.passes import (
     completed_passes,
     finished,
     parse_refine,
-    passes_dir,
     passes_parameter,
     run_refine_pass,
+    set_aside,
     write_landing,
 )
 
@@ -213,13 +214,9 @@ def extends(directory: Path, parameters: dict) -> bool:
     record = read_record(directory)
     if record is None:
         return False
-    old, new = dict(record.get("parameters", {})), plain_parameters(parameters)
+    old, new = dict(record.get("parameters", {})), dict(plain(parameters))
     before, after = old.pop("passes", []), new.pop("passes", [])
     return old == new and len(before) < len(after) and after[:len(before)] == before
-
-
-def plain_parameters(parameters: dict) -> dict:
-    return dict(plain(parameters))
 
 
 def merge_options(options: dict):
@@ -267,7 +264,6 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     ``workers`` (the solver: threads of this process). ``passes``: the refine passes
     whose beams the capture holds (default: those done in the workspace).
     """
-    from ilt.capture.plan import planned_beams
     from ilt.decompose.stage import decompose, default_cache_dir, not_decomposed
     from ilt.hdr.stages import merge_capture
     from ilt.isf.build import build_isf
@@ -290,7 +286,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     # a failed centroids stage ends the run before build-isf
     scratch = ws.root / SCRATCH_DIR
     passes = completed_passes(ws) if passes is None else passes
-    beams = planned_beams(cfg.rig.plan) + sum(p.beams for p in passes)
+    beams = scan_beams(cfg, passes)
 
     def make_merge():
         with progress(beams, "merge") as update:
@@ -515,15 +511,15 @@ def refine_state(ws: Workspace, cfg: RunConfig, passes: list[Pass]) -> StageStat
     """The refine passes as a stage's state: done when no pass is left to run."""
     from ilt.workspace.passes import read_landing
 
-    beams = " + ".join(str(n) for n in [planned_beams_of(cfg), *(p.beams for p in passes)])
+    beams = " + ".join(str(n) for n in [planned_beams(cfg.rig.plan), *(p.beams for p in passes)])
     said = f"pass {len(passes)} of {cfg.refine.passes} ({beams} beams)"
     landing = (read_landing(ws) or {}).get("passes", [])
     found = [x for x in landing if x.get("median_px") is not None]
     if found:
         said += "; landing " + ", ".join(f"{x['median_px']:.2f}" for x in found) + " px (median a pass)"
     if len(passes) > cfg.refine.passes:
-        return StageState("refine", str(passes_dir(ws)), STALE, said + ": more passes than the config asks")
-    return StageState("refine", str(passes_dir(ws)), DONE if finished(cfg.refine, passes) else MISSING, said)
+        return StageState("refine", str(ws.passes), STALE, said + ": more passes than the config asks")
+    return StageState("refine", str(ws.passes), DONE if finished(cfg.refine, passes) else MISSING, said)
 
 
 def check_unchanged(assessed: list[Assessment]) -> None:
@@ -535,9 +531,6 @@ def check_unchanged(assessed: list[Assessment]) -> None:
         if a.state.state == CHANGED:
             raise StageError(f"{a.state.directory}: {a.state.reason}")
 
-
-#: the directory of the refine passes, as messages name it
-PASSES_NAME = "passes"
 
 #: beside WORKSPACE/rig.toml: the fingerprint of the config `ilt run` last copied there
 INSTALLED = ".rig.toml.installed"
@@ -601,7 +594,7 @@ def check_capture(stage: Stage, force: bool, state: StageState | None = None) ->
         asked = len(stage.parameters.get("passes", []))
         if held > asked:
             raise StageError(f"{stage.directory}: holds the beams of {held} refine pass(es), the workspace's "
-                             f"{PASSES_NAME}/ and config give {asked} (raise [refine] passes, restore the "
+                             f"{PASSES}/ and config give {asked} (raise [refine] passes, restore the "
                              "pass directories, or use --force to move the scan aside and scan again)")
         raise StageError(f"{stage.directory}: {state.reason}; the scan differs from the config "
                          "(use --force to move it aside and scan again)")
@@ -632,9 +625,7 @@ def run_capture(stage: Stage, state: StageState, cfg: RunConfig, force: bool, pr
     log.info("capture: %s (%s)", f"refine pass {len(passes)}: adding its beams" if extending else
              "resuming" if resume else "scanning", state.reason or state.state)
 
-    from ilt.capture.plan import planned_beams
-
-    with progress(planned_beams(cfg.rig.plan) + sum(p.beams for p in passes), "capture") as update:
+    with progress(scan_beams(cfg, passes), "capture") as update:
         def on_beam(result, done, total):
             log.debug("capture: beam %d (%d/%d) %.1f s", result.beam, done, total, result.seconds)
             update(1)
@@ -651,7 +642,7 @@ def run_pipeline(ws: Workspace, cfg: RunConfig, force: bool = False, progress=no
     ``progress``, ``executor``: as :func:`plan_stages` takes them."""
     passes = [] if force else completed_passes(ws)
     if len(passes) > cfg.refine.passes:
-        raise StageError(f"{passes_dir(ws)}: holds {len(passes)} refine pass(es), the config asks for "
+        raise StageError(f"{ws.passes}: holds {len(passes)} refine pass(es), the config asks for "
                          f"{cfg.refine.passes} (raise [refine] passes, or use --force to scan again)")
     summaries = _run_pass(ws, cfg, passes, force, progress, executor)
     while not finished(cfg.refine, passes):
@@ -675,7 +666,7 @@ def _run_pass(ws: Workspace, cfg: RunConfig, passes: list[Pass], force: bool, pr
     if assessed:
         check_unchanged(assessed)
     if force and not passes:
-        aside = _set_aside_passes(ws)
+        aside = set_aside(ws)
         if aside:
             log.warning("refine: the previous passes are kept in %s", aside)
     install_config(ws, cfg)
@@ -685,22 +676,15 @@ def _run_pass(ws: Workspace, cfg: RunConfig, passes: list[Pass], force: bool, pr
     finally:
         _remove_scratch(ws)
     if passes and any(s["ran"] for s in summaries) and stages[3].directory.joinpath(MANIFEST).is_file():
-        write_landing(ws, passes, planned_beams_of(cfg))
+        write_landing(ws, passes, planned_beams(cfg.rig.plan))
     for s in summaries:
         s["pass"] = len(passes)
     return summaries
 
 
-def planned_beams_of(cfg: RunConfig) -> int:
-    from ilt.capture.plan import planned_beams
-
-    return planned_beams(cfg.rig.plan)
-
-
-def _set_aside_passes(ws: Workspace):
-    from ilt.workspace.passes import set_aside
-
-    return set_aside(ws)
+def scan_beams(cfg: RunConfig, passes: list[Pass]) -> int:
+    """The beams of the config's plan and of the refine passes."""
+    return planned_beams(cfg.rig.plan) + sum(p.beams for p in passes)
 
 
 def _run_stages(stages: list[Stage], capture_state: StageState, assessed: list[Assessment] | None,

@@ -48,6 +48,10 @@ from ilt.workspace.options import DECOMPOSE
 @stage_option(DECOMPOSE["samples_only"],
               help="Split the photo at the m samples only: skip the full-resolution bounce images "
                    "(the ISF's fine/ operator).")
+@stage_option(DECOMPOSE["accept_non_lambertian"],
+              help="Write the bounces even when T fails the Lambertian check (isf/lambertian.json says "
+                   "'not lambertian') or the bounce series diverges (spectral radius of A = I - C1 >= 1); every "
+                   "output then records the verdict. Without it such a T is refused, nothing written.")
 @click.option("--no-spill", "no_spill", is_flag=True,
               help="Take T1 diagonal, as the paper does, even when the ISF measured its spots' direct light "
                    "in neighbouring cells (isf/spill.npz): by default that light is taken out of T first, "
@@ -58,7 +62,7 @@ from ilt.workspace.options import DECOMPOSE
 @force_option
 @json_option
 def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solver, noise, regularise, samples_only,
-            no_spill, cluster, workspace, force, as_json):
+            accept_non_lambertian, no_spill, cluster, workspace, force, as_json):
     """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
 
     INPUT is an EXR photo on the grid of the beam frames (integrated over the ISF's
@@ -83,5 +87,6 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
     with executor_for(cluster) as executor:
         summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache,
                               force=force, solver=solver, noise=noise, regularise=regularise,
-                              samples_only=samples_only, executor=executor, spill=not no_spill)
+                              samples_only=samples_only, executor=executor, spill=not no_spill,
+                              accept_non_lambertian=accept_non_lambertian)
     emit(as_json, summaries, [s["output"] for s in summaries])

@@ -35,10 +35,13 @@ from ilt.cli.options import (
               help="With --frames: surface patches per beam spacing (the box uses fine/4 per axis).")
 @click.option("--px-per-beam", type=click.FloatRange(min=4), default=32.0, show_default=True,
               help="With --frames: pixels between neighbouring spots.")
+@click.option("--gloss", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+              help="Share of every surface's reflection that is glossy (a lobe about the mirror direction), "
+                   "flatland scenes without --frames: a non-Lambertian scene, for the reciprocity check.")
 @force_option
 @json_option
 def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frames, spot, fine, px_per_beam,
-            force, as_json):
+            gloss, force, as_json):
     """Simulate SCENE (m, box, textured, occluded) and write its ISF directory.
 
     Writes T.npy, samples.csv, manifest.json, photos/ (flashlight, room light and
@@ -50,6 +53,8 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
     photos/<kind>.exr, truth/spots.csv (true spot centres) and
     truth/photos/<kind>-bounces.npy (true n-bounce frames); see docs/spots-and-isf.md.
     """
+    if gloss > 0 and (frames or scene == "box"):
+        raise click.UsageError("--gloss is for the flatland scenes (m, textured, occluded) without --frames")
     if frames:
         from ilt.sim.render import render_scene
         from ilt.workspace.simulate import write_frames
@@ -68,5 +73,9 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
 
     sc = make_scene(scene, beams=beams, albedo=albedo, seed=seed)
     params = {"scene": scene, "beams": sc.m, "albedo": albedo, "seed": seed}
-    path = write_simulation(sc, output, params, n_bounces=n_bounces, max_bounces=tracer_bounces, force=force)
+    try:
+        path = write_simulation(sc, output, params, n_bounces=n_bounces, max_bounces=tracer_bounces, force=force,
+                                gloss=gloss)
+    except ValueError as error:
+        raise click.UsageError(str(error)) from error
     emit(as_json, {"output": str(path), "scene": scene, "m": sc.m, "layout": list(sc.layout)}, [str(path)])

@@ -36,6 +36,7 @@ from ilt.io.staged import staged_directory
 from ilt.isf.cells import integrate, mosaic
 from ilt.isf.directory import ISF
 from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
+from ilt.isf.lambertian import LAMBERTIAN_FILE, read_lambertian
 from ilt.isf.layout import sample_frame, splat, vector_to_image
 from ilt.isf.noise import NOISE_FILE, read_noise
 from ilt.isf.spill import SPILL_FILE, Unmixing
@@ -53,6 +54,10 @@ from ilt.transport.solvers import build_operator, choose_solver, estimate_noise
 log = logging.getLogger(__name__)
 
 _CACHE_ARRAYS = ("factors", "perm", "t1_unit", "column_norms")
+
+
+class NotLambertian(ValueError):
+    """T fails a check that the cancellation theorem needs (reciprocity, spectral radius < 1)."""
 
 
 class InputError(ValueError):
@@ -355,10 +360,13 @@ def write_decomposition(
     named["indirect"] = decomposition.indirect
     named["residual"] = decomposition.residual
     channels = photo.channels
+    verdict = diagnostics.get("lambertian")
+    marked = {} if verdict is None else {"ilt:lambertian": str(verdict["verdict"]),
+                                         "ilt:lambertian_accepted": int(bool(verdict.get("accepted")))}
     for name, values in named.items():
         for kind, image in _images(values, isf, photo.frame).items():
             suffix = "" if kind == "layout" else ".frame"
-            attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name}
+            attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name, **marked}
             if kind == "frame":
                 attributes.update(isf.mapping.attributes())
             write_exr(samples / f"{name}{suffix}.exr", image, channels=channels, attributes=attributes)
@@ -370,7 +378,8 @@ def write_decomposition(
     if fine is not None and photo.image is not None:
         images = full_resolution(fine, photo.image, decomposition, t1, photo.saturated, weights)
         for name, image in images.items():
-            attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name, **isf.mapping.attributes()}
+            attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name, **isf.mapping.attributes(),
+                          **marked}
             write_exr(directory / f"{name}.exr", image, channels=["Y"] if name == "coverage" else channels,
                       attributes=attributes)
         shown = {"photo": photo.image[:, :, 0]}
@@ -412,8 +421,15 @@ def decompose(
     samples_only: bool = False,
     executor=None,
     spill: bool = True,
+    accept_non_lambertian: bool = False,
 ) -> list[dict]:
     """Decompose every input into ``out/<stem>/``; returns one summary per input.
+
+    A T that the reciprocity check of build-isf judged "not lambertian"
+    (``lambertian.json``, :mod:`ilt.isf.lambertian`) or whose bounce series diverges
+    (spectral radius of ``A = I - C1`` >= 1) is refused (:class:`NotLambertian`, nothing
+    written) unless ``accept_non_lambertian``; then every summary.json and EXR records
+    the verdict.
 
     ``spill``: when the ISF measured its spots' direct light in other cells
     (``spill.npz``, :mod:`ilt.isf.spill`), split ``(I + Q)^-1 p`` with the operator of
@@ -439,7 +455,9 @@ def decompose(
         raise InputError(f"two inputs share a name ({stems}); their results would collide in {out}")
     out = Path(out)
     fingerprint = fingerprint_array(np.asarray(isf.T))
-    parameters = decompose_parameters(isf, n_bounces, tol, solver, noise, regularise, samples_only, spill)
+    parameters = decompose_parameters(isf, n_bounces, tol, solver, noise, regularise, samples_only, spill,
+                                      accept_non_lambertian)
+    verdict = _lambertian_verdict(isf, accept_non_lambertian)
     hashes = {photo.name: fingerprint_file(photo.path) for photo in photos}   # each photo read once
     done = {}
     for photo in photos:
@@ -482,6 +500,7 @@ def decompose(
                                 "operator_of": "(I + Q)^-1 T", "fingerprint": op_diag["fingerprint"]}
             log.info("%s: the spots' direct light in other cells (%d entries, %.2g of a spot's on average) "
                      "is taken out of T before inverting", isf.path, Q.nnz, Q.sum() / isf.m)
+        verdict = _diverging(isf, op_diag, verdict, accept_non_lambertian)
         for w in op_diag["warnings"]:
             log.warning("%s: %s", isf.path, w)
         created = not out.exists()
@@ -501,6 +520,8 @@ def decompose(
                     "decomposition": diag,
                     "full_resolution": _full_resolution_summary(photo, fine, why),
                 }
+                if verdict is not None:
+                    summary["lambertian"] = verdict
                 if full and photo.saturated is not None:
                     log.warning("%s: %d saturated pixels (values are lower bounds) left out of the full-resolution "
                                 "images (coverage 0, all residual)", photo.path, int(photo.saturated.sum()))
@@ -574,7 +595,7 @@ def frames_noise(isf_dir) -> tuple[float | None, str]:
 
 def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver: str = "auto",
                          noise: float | None = None, regularise: bool = False, samples_only: bool = False,
-                         spill: bool = True) -> dict:
+                         spill: bool = True, accept_non_lambertian: bool = False) -> dict:
     """What a photo's ``manifest.json`` records as the parameters of its decomposition:
     the options, and the fine operator and spill matrix used by their files' hashes
     (None: none), so a re-run after ``fine/`` or ``spill.npz`` was built or rebuilt is
@@ -584,7 +605,42 @@ def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver:
     fine = None if samples_only or not manifest.exists() else fingerprint_file(manifest)
     return {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
             "samples_only": samples_only, "fine": fine,
-            "spill": fingerprint_file(directory / SPILL_FILE) if _spill_used(isf, spill) else None}
+            "spill": fingerprint_file(directory / SPILL_FILE) if _spill_used(isf, spill) else None,
+            "accept_non_lambertian": accept_non_lambertian}
+
+
+def _lambertian_verdict(isf: ISF, accept: bool) -> dict | None:
+    """build-isf's reciprocity verdict on T (None: the ISF has none); refused when "not lambertian"."""
+    directory = Path(isf.path).parent
+    try:
+        verdict = read_lambertian(directory)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if verdict is None:
+        return None
+    if verdict.get("verdict") == "not lambertian":
+        if not accept:
+            raise NotLambertian(f"{directory / LAMBERTIAN_FILE}: not lambertian: {verdict.get('reason', '')}; "
+                                "the cancellation theorem needs a Lambertian scene, so the bounces would be wrong: "
+                                "nothing written (--accept-non-lambertian writes them, marked)")
+        log.warning("%s: not lambertian (%s): writing the bounces as asked, each marked with the verdict",
+                    directory / LAMBERTIAN_FILE, verdict.get("reason", ""))
+    return {"verdict": verdict.get("verdict"), "reason": verdict.get("reason"), "accepted": accept,
+            "reciprocity_residual": verdict.get("reciprocity_residual"), "noise_floor": verdict.get("noise_floor")}
+
+
+def _diverging(isf: ISF, op_diag: dict, verdict: dict | None, accept: bool) -> dict | None:
+    """Refuse a T whose bounce series diverges (spectral radius of A >= 1) unless accepted; the verdict to record."""
+    rho = op_diag.get("spectral_radius_A")
+    if rho is None or rho < 1:
+        return verdict
+    what = (f"spectral radius of A = I - C1 is {rho:.4g} >= 1: the bounce series diverges, so T is not the ISF of "
+            "a Lambertian scene that conserves energy (glossy or specular surfaces, flare, noise in T or a wrong spot)")
+    if not accept:
+        raise NotLambertian(f"{isf.path}: {what}: nothing written (--accept-non-lambertian writes the bounces, marked)")
+    op_diag["warnings"] = [w for w in op_diag["warnings"] if "spectral radius" not in w] + [f"{what}; written as asked"]
+    return {**(verdict or {"verdict": "undecided", "reason": "no lambertian.json"}), "accepted": True,
+            "spectral_radius_A": rho}
 
 
 def previous_result(directory: Path, parameters: dict, inputs: set[str]) -> dict | None:

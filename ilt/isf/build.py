@@ -48,6 +48,7 @@ from ilt.isf.fine import (
     frames_inputs,
     write_fine,
 )
+from ilt.isf.lambertian import check_lambertian
 from ilt.isf.noise import (
     SAMPLE_FRAMES,
     T_VAR_FILE,
@@ -433,6 +434,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             scipy.sparse.save_npz(tmp / SPILL_FILE, Q)
             fields["spill"] = {"entries": int(Q.nnz), "mean_share": float(Q.sum() / m),
                                "max_share": float(Q.max()) if Q.nnz else 0.0}
+        T_var = np.load(tmp / T_VAR_FILE, mmap_mode="r") if (tmp / T_VAR_FILE).exists() else None
+        fields["lambertian"] = check_lambertian(tmp, T, centroids, T_var, plan, hdr.layout, labels)
+        del T_var
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
         save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")

@@ -113,4 +113,5 @@ DECOMPOSE = _table(
     BOUNCES,
     StageOption("tol", "tol", 0.0, click.FloatRange(min=0)),
     StageOption("samples_only", "samples-only", False),
+    StageOption("accept_non_lambertian", "accept-non-lambertian", False),
 )

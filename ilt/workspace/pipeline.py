@@ -309,7 +309,8 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
         finally:
             _remove_scratch(ws)
 
-    decompose_options = {"n_bounces": dec["n_bounces"], "tol": dec["tol"], "samples_only": dec["samples_only"]}
+    decompose_options = {"n_bounces": dec["n_bounces"], "tol": dec["tol"], "samples_only": dec["samples_only"],
+                         "accept_non_lambertian": dec["accept_non_lambertian"]}
 
     def make_decompose():
         with staged_directory(d["decompose"], force=True) as tmp:

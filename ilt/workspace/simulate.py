@@ -3,6 +3,7 @@
 Layout of the directory (docs/formats.md)::
 
     T.npy  samples.csv  manifest.json          the ISF, as build-isf writes it
+    lambertian.json  lambertian.png            its reciprocity verdict (ilt.isf.lambertian)
     photos/<kind>.npy  photos/<kind>.exr       photos: sample vectors and camera frames
     truth/A.npy  truth/T1.npy                  true transport and diag(T1) for unit columns
     truth/isf-bounces.npy                      (N, m, m) true n-bounce ISFs (m <= 2048)
@@ -18,8 +19,10 @@ from ilt.io.exr import write_exr
 from ilt.io.manifest import save_npy, write_manifest
 from ilt.io.staged import staged_directory
 from ilt.isf.directory import write_isf
+from ilt.isf.lambertian import check_lambertian
 from ilt.isf.layout import splat
 from ilt.sim import ILLUMINATIONS, Scene
+from ilt.sim.gloss import glossy_scene
 from ilt.sim.memory import require
 
 #: the largest m for which the (N, m, m) true n-bounce ISFs are written
@@ -33,27 +36,36 @@ def write_simulation(
     n_bounces: int = 8,
     max_bounces: int | None = None,
     force: bool = False,
+    gloss: float = 0.0,
 ) -> Path:
-    """Write ``scene`` as an ISF directory at ``out`` (atomically).
+    """Write ``scene`` as an ISF directory at ``out`` (atomically), with ``lambertian.json``.
 
     ``max_bounces`` renders T with the paper's forward tracer truncated at that many
-    bounces (the paper used 7); None gives the exact T.
+    bounces (the paper used 7); None gives the exact T. ``gloss`` > 0 (flatland only):
+    that share of every patch's reflection glossy (:mod:`ilt.sim.gloss`); the truth then
+    holds the photos' true bounces only (no A, T1 or n-bounce ISFs: the transport is
+    over pairs of patches).
     """
     out = Path(out)
-    if scene.m <= TRUTH_ISF_MAX_M:  # (N, m, m) float64
+    glossy = glossy_scene(scene, gloss) if gloss > 0 else None
+    if glossy is not None and max_bounces is not None:
+        raise ValueError("--tracer-bounces and --gloss cannot be combined: the glossy scene's T is the exact solve")
+    if scene.m <= TRUTH_ISF_MAX_M and glossy is None:  # (N, m, m) float64
         require(8 * n_bounces * scene.m**2, f"the {n_bounces} true n-bounce ISFs of {scene.m} beams")
-    T, scale = scene.isf(max_bounces=max_bounces)
+    T, scale = scene.isf(max_bounces=max_bounces) if glossy is None else glossy.isf()
     with staged_directory(out, force=force) as tmp:
         fields = write_isf(tmp, T, scene.samples, scene.layout, scene.frame_shape)
+        fields["lambertian"] = check_lambertian(tmp, T, scene.samples, None, None, scene.layout)
         truth = tmp / "truth"
         (truth / "photos").mkdir(parents=True)
         (tmp / "photos").mkdir()
-        save_npy(truth / "A.npy", scene.A)
-        save_npy(truth / "T1.npy", scene.direct / scale)
-        if scene.m <= TRUTH_ISF_MAX_M:
-            save_npy(truth / "isf-bounces.npy", scene.bounce_isfs(n_bounces))
+        if glossy is None:
+            save_npy(truth / "A.npy", scene.A)
+            save_npy(truth / "T1.npy", scene.direct / scale)
+            if scene.m <= TRUTH_ISF_MAX_M:
+                save_npy(truth / "isf-bounces.npy", scene.bounce_isfs(n_bounces))
         for kind in ILLUMINATIONS:
-            photo, bounces = scene.photo(kind, n_bounces=n_bounces)
+            photo, bounces = (scene if glossy is None else glossy).photo(kind, n_bounces=n_bounces)
             save_npy(tmp / "photos" / f"{kind}.npy", photo)
             write_exr(
                 tmp / "photos" / f"{kind}.exr", splat(photo, scene.samples, scene.frame_shape),
@@ -62,7 +74,7 @@ def write_simulation(
             save_npy(truth / "photos" / f"{kind}-bounces.npy", bounces)
         write_manifest(
             tmp, "simulate",
-            {**parameters, "truth_bounces": n_bounces, "tracer_bounces": max_bounces},
+            {**parameters, "truth_bounces": n_bounces, "tracer_bounces": max_bounces, "gloss": gloss},
             extra=fields,
         )
     return out

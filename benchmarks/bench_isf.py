@@ -4,6 +4,7 @@
     python benchmarks/bench_isf.py sampling [--quick] [--densities 32,64,128]
     python benchmarks/bench_isf.py noise [--quick] [--beams M] [--width W --height H]
     python benchmarks/bench_isf.py spill [--quick] [--beams M] [--width W --height H]
+    python benchmarks/bench_isf.py lambertian [--quick] [--beams M] [--width W --height H]
 
 throughput: writes m synthetic beam frames (a Gaussian laser spot on a smooth
 interreflection-like background), then times, in this process, (a) just reading
@@ -21,6 +22,9 @@ repeat; medians and the ratio (target <= 1.2).
 spill: the cost of measuring each spot's direct light in its neighbours' cells (issue 21,
 :mod:`ilt.isf.spill`): build-isf on the synthetic frames with and without it, back to back
 in every repeat; medians and the ratio (target <= 1.15).
+
+lambertian: the cost of the reciprocity check (issue 22, :mod:`ilt.transport.reciprocity`),
+build-isf with and without it, the same way (target <= 1.10 at m = 4096).
 
 sampling: renders the flatland M at several beam densities (spot sigma 1/20 of the
 beam spacing, 16 surface patches per spacing), runs centroids, build-isf with cell
@@ -142,7 +146,9 @@ def noise_cost(m: int, width: int, height: int, workers: int, repeats: int) -> N
     print(f"  ratio {ratio:.3f} (target <= 1.2)")
 
 
-def spill_cost(m: int, width: int, height: int, workers: int, repeats: int) -> None:
+def toggle_cost(option: str, output: str, target: float, what: str, m: int, width: int, height: int,
+                workers: int, repeats: int) -> None:
+    """build-isf with ``option`` on and off, back to back in every repeat: medians and their ratio."""
     from ilt.isf import build
     from ilt.spots.stage import run_centroids
 
@@ -152,17 +158,17 @@ def spill_cost(m: int, width: int, height: int, workers: int, repeats: int) -> N
         run_centroids(tmp / "hdr", tmp / "spots", workers=workers)
         times: dict = {True: [], False: []}
         for _ in range(repeats + 1):   # the first round warms the page cache and is not counted
-            for spill in (True, False):
+            for on in (True, False):
                 t = time.perf_counter()
-                build.build_isf(tmp / "hdr", tmp / "spots", tmp / "isf", workers=workers, force=True, spill=spill)
-                times[spill].append(time.perf_counter() - t)
-                assert (tmp / "isf" / "spill.npz").exists() == spill
+                build.build_isf(tmp / "hdr", tmp / "spots", tmp / "isf", workers=workers, force=True, **{option: on})
+                times[on].append(time.perf_counter() - t)
+                assert (tmp / "isf" / output).exists() == on
     with_, without = (statistics.median(times[k][1:]) for k in (True, False))
     ratio = statistics.median(a / b for a, b in zip(times[True][1:], times[False][1:]))
     print(f"build-isf, m = {m}, {width} x {height}, {workers} workers, medians of {repeats} repeats")
-    print(f"  with the spill measured  {with_:8.2f} s")
-    print(f"  without                  {without:8.2f} s")
-    print(f"  ratio {ratio:.3f} (target <= 1.15)")
+    print(f"  with {what:22s} {with_:8.2f} s")
+    print(f"  without                    {without:8.2f} s")
+    print(f"  ratio {ratio:.3f} (target <= {target})")
 
 
 def sampling_errors(scene_name: str, beams: int, spot: float, workdir: Path, n_bounces: int = 4) -> dict:
@@ -221,6 +227,7 @@ def main() -> None:
                                              help="cProfile one single-worker run instead")
     frames_parser("noise")
     frames_parser("spill")
+    frames_parser("lambertian")
     s = sub.add_parser("sampling")
     s.add_argument("--quick", action="store_true", help="densities 16, 32")
     s.add_argument("--densities", default="32,64,128")
@@ -235,10 +242,12 @@ def main() -> None:
         if args.quick:
             args.beams, args.width, args.height = 128, 320, 240
         noise_cost(args.beams, args.width, args.height, args.workers, args.repeats)
-    elif args.what == "spill":
+    elif args.what in ("spill", "lambertian"):
         if args.quick:
             args.beams, args.width, args.height = 128, 320, 240
-        spill_cost(args.beams, args.width, args.height, args.workers, args.repeats)
+        option = {"spill": ("spill", "spill.npz", 1.15, "the spill measured"),
+                  "lambertian": ("lambertian", "lambertian.json", 1.10, "the reciprocity check")}[args.what]
+        toggle_cost(*option, args.beams, args.width, args.height, args.workers, args.repeats)
     else:
         densities = [16, 32] if args.quick else [int(d) for d in args.densities.split(",")]
         sampling_table(densities, args.spot, args.scene)

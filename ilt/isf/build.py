@@ -268,7 +268,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
               sampling: str = "cell", min_separation: float = 2.0, lit_fraction: float = 1e-3,
               max_cell_radius: float | None = None, executor=None, workers: int | None = None,
               chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
-              fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True) -> dict:
+              fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True, lambertian: bool = True) -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
@@ -287,6 +287,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     full-resolution bounce images (:mod:`ilt.isf.fine`), fitted in the same pass over the
     frames; None skips it. ``spill`` (cell sampling): also write ``spill.npz``, each
     spot's direct light in the other cells (:mod:`ilt.isf.spill`), measured in the same pass.
+    ``lambertian``: also write ``lambertian.json`` and ``lambertian.png``, the reciprocity
+    verdict on T (:mod:`ilt.isf.lambertian`); False only to time build-isf without it.
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
@@ -434,9 +436,10 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             scipy.sparse.save_npz(tmp / SPILL_FILE, Q)
             fields["spill"] = {"entries": int(Q.nnz), "mean_share": float(Q.sum() / m),
                                "max_share": float(Q.max()) if Q.nnz else 0.0}
-        T_var = np.load(tmp / T_VAR_FILE, mmap_mode="r") if (tmp / T_VAR_FILE).exists() else None
-        fields["lambertian"] = check_lambertian(tmp, T, centroids, T_var, plan, hdr.layout, labels)
-        del T_var
+        if lambertian:
+            T_var = np.load(tmp / T_VAR_FILE, mmap_mode="r") if (tmp / T_VAR_FILE).exists() else None
+            fields["lambertian"] = check_lambertian(tmp, T, centroids, T_var, plan, hdr.layout, labels)
+            del T_var
         manifest_fields = write_isf(tmp, T, centroids, hdr.layout, hdr.frame_shape, beams=plan, t_written=True)
         save_npy(tmp / SCALES_FILE, scales)
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")

@@ -46,8 +46,8 @@ NEAR_SPACINGS = 2.5
 MIN_SNR = 10.0
 #: ... and above this share of T's largest off-diagonal entry (always: noise-free T too)
 MIN_RELATIVE = 1e-6
-#: fewer usable pairs than this (or than the beams they join) and the verdict is "undecided"
-MIN_PAIRS = 20
+#: fewer residual degrees of freedom than this (pairs less the beams' free values) and the verdict is "undecided"
+MIN_DOF = 8
 #: beams named as violating most
 WORST_BEAMS = 10
 #: pairs fitted at most: an even stride through them past that (m = 4096 has 8 million)
@@ -218,8 +218,13 @@ def _fit(m: int, i: np.ndarray, j: np.ndarray, y: np.ndarray, variance: np.ndarr
             break
         scale = new_scale
     residual = MAD_SIGMA * float(np.median(np.abs(r)))
-    # what noise alone gives to the same robust rms: one draw of each pair's noise (seeded)
-    floor = MAD_SIGMA * float(np.median(np.abs(np.random.default_rng(0).standard_normal(pairs) * np.sqrt(variance))))
+    # what noise alone leaves to the same robust rms: one draw of each pair's noise (seeded), less
+    # what the fit's free values absorb (one per beam, less one per connected group of beams)
+    graph = scipy.sparse.coo_matrix((np.ones(pairs), (i, j)), shape=(m, m))
+    groups = scipy.sparse.csgraph.connected_components(graph, directed=False)[1]
+    dof = max(pairs - (len(used) - len(np.unique(groups[used]))), 1)
+    drawn = np.random.default_rng(0).standard_normal(pairs) * np.sqrt(variance)
+    floor = MAD_SIGMA * float(np.median(np.abs(drawn))) * np.sqrt(dof / pairs)
     excess = float(np.sqrt(max(residual**2 - floor**2, 0.0)))
     counts = np.bincount(i, minlength=m) + np.bincount(j, minlength=m)
     sums = np.bincount(i, weights=r**2, minlength=m) + np.bincount(j, weights=r**2, minlength=m)
@@ -227,7 +232,7 @@ def _fit(m: int, i: np.ndarray, j: np.ndarray, y: np.ndarray, variance: np.ndarr
         per_beam = np.where(counts > 0, np.sqrt(sums / np.maximum(counts, 1)), np.nan)
     figures = (f"reciprocity residual {residual:.3g} (log units) over {pairs} pairs of {len(used)} beams, "
                f"noise floor {floor:.3g}, excess {excess:.3g} against tolerance {tolerance:g}")
-    if pairs < max(MIN_PAIRS, len(used)):
+    if dof < MIN_DOF:
         verdict, why = "undecided", f"too few pairs above the noise: {figures}"
     elif excess > tolerance:
         verdict, why = "not lambertian", (f"T is not reciprocal, as a Lambertian scene's is: {figures}; "

@@ -20,7 +20,7 @@ COMMANDS = {
                   "--large-factor", "--max-area", "--saturation", "--roi", "--refine", "-j/--workers", "--scheduler",
                   "--scheduler-file", "--insecure", "-w/--workspace", "--force", "--json"],
     "decompose": ["INPUTS", "--isf", "-o/--output", "--bounces", "--tol", "--cache-dir", "--no-cache", "--solver",
-                  "--noise", "--regularise", "--samples-only", "--no-spill", "--scheduler", "--scheduler-file", "--insecure",
+                  "--noise", "--regularise", "--samples-only", "--accept-non-lambertian", "--no-spill", "--scheduler", "--scheduler-file", "--insecure",
                   "-w/--workspace", "--force", "--json"],
     "demo": ["-o/--output", "--quick", "--force", "--json"],
     "merge": ["INPUTS", "-o/--output", "--bracket", "--times", "--dark", "--response", "--gain", "--read-noise",
@@ -32,7 +32,7 @@ COMMANDS = {
     "rig-emulator": ["--socket", "--fault", "--speed", "--laser-on", "--laser-off"],
     "run": ["CONFIG", "-w/--workspace", "--force", "--scheduler", "--scheduler-file", "--insecure", "--json"],
     "simulate": ["SCENE", "-o/--output", "--beams", "--albedo", "--seed", "--bounces", "--tracer-bounces", "--frames",
-                 "--spot", "--fine", "--px-per-beam", "--force", "--json"],
+                 "--spot", "--fine", "--px-per-beam", "--gloss", "--force", "--json"],
     "status": ["CONFIG", "-w/--workspace", "--verify", "--json"],
 }
 

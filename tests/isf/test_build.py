@@ -438,3 +438,15 @@ def test_a_denser_scan_covers_at_least_what_a_sparser_one_did(tmp_path):
     # and a radius, when asked for, still bounds them
     build_isf(sim / "hdr", spots, tmp_path / "isf-r", workers=1, fine_degree=None, max_cell_radius=3.0)
     assert (load_isf(tmp_path / "isf-r").cells >= 0).mean() < 0.5 * covered["dense"].mean()
+
+
+def test_a_matte_scene_is_judged_lambertian_from_its_cells_and_points(runs):
+    """The rendered M is Lambertian: reciprocity holds to the cells' variation (build-isf's lambertian.json)."""
+    root, _ = runs[32]
+    for sampling in ("cell", "point"):
+        verdict = json.loads((root / sampling / "lambertian.json").read_text())
+        assert verdict["verdict"] == "lambertian", verdict
+        assert verdict["reciprocity_residual"] < 0.5 * verdict["tolerance"], verdict
+        assert verdict["pairs"] >= 100 and verdict["beams"] == 32
+        assert (root / sampling / "lambertian.png").exists()
+        assert json.loads((root / sampling / "manifest.json").read_text())["lambertian"]["verdict"] == "lambertian"

@@ -26,6 +26,11 @@ def test_first_run_writes_every_stage(workspace):
         assert (workspace / sub / "manifest.json").exists()
     assert (workspace / "decompose" / "flashlight" / "bounce-1.exr").exists()
     assert (workspace / "rig.toml").read_text() == SMALL_RIG
+    # the emulated rig's noisy scan of a matte scene passes the reciprocity check, above its noise floor
+    verdict = json.loads((workspace / "isf" / "lambertian.json").read_text())
+    assert verdict["verdict"] == "lambertian" and 0 < verdict["noise_floor"] and verdict["excess"] < verdict["tolerance"]
+    summary = json.loads((workspace / "decompose" / "flashlight" / "summary.json").read_text())
+    assert summary["lambertian"]["verdict"] == "lambertian" and summary["lambertian"]["accepted"] is False
 
 
 def test_build_isf_reads_the_frames_centroids_kept_and_leaves_none(workspace, tmp_path):

@@ -113,6 +113,25 @@ def _warnings(items: list[str]) -> str:
     return "<ul class=\"warn\">" + "".join(f"<li>{html.escape(w)}</li>" for w in items) + "</ul>"
 
 
+def _lambertian(isf_dir: Path, tmp: Path) -> str:
+    """The reciprocity verdict on T (isf/lambertian.json) and its per-beam map."""
+    from ilt.isf.lambertian import LAMBERTIAN_PNG, read_lambertian
+
+    verdict = read_lambertian(isf_dir)
+    body = "<h3>Is the scene Lambertian? (reciprocity of T)</h3>"
+    if verdict is None:
+        return body + '<p class="missing">no lambertian.json (an ISF built before the check)</p>'
+    body += _table({k: verdict.get(k) for k in ("verdict", "reciprocity_residual", "noise_floor", "excess",
+                                                 "tolerance", "pairs", "beams")})
+    if verdict.get("verdict") == "not lambertian":
+        body += _warnings([verdict.get("reason", "")])
+    if (isf_dir / LAMBERTIAN_PNG).exists():
+        shutil.copyfile(isf_dir / LAMBERTIAN_PNG, tmp / "lambertian.png")
+        body += _figure("lambertian.png", "each beam's rms asymmetry log T_ij - log T_ji off the fitted "
+                                          "diagonal scaling (log units): where the scene is least Lambertian")
+    return body
+
+
 def _figure(src: str, caption: str) -> str:
     return (f'<figure><img src="{html.escape(src)}" alt="{html.escape(caption)}">'
             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
@@ -165,6 +184,7 @@ def write_report(workspace: Workspace, out: str | os.PathLike | None = None, for
             body += "<h3>Operator diagnostics</h3>" + _table(
                 {k: v for k, v in op_diag.items() if k not in ("warnings", "fingerprint")})
             body += _warnings(op_diag["warnings"])
+            body += _lambertian(isf_dir, tmp)
         else:
             body += '<p class="missing">no ISF (run ilt build-isf)</p>'
         sections.append(body)

@@ -97,7 +97,8 @@ def operator_diagnostics(T: np.ndarray | IsfMatrix, operator: CancellationOperat
     if rho >= 1:
         warnings.append(
             f"spectral radius of A = I - C1 is {rho:.6g} >= 1: the bounce series diverges, "
-            "T is not the ISF of a physical Lambertian scene (noise, flare or a wrong spot?)"
+            "T is not the ISF of a physical Lambertian scene (glossy or specular reflectance, flare, noise in T "
+            "or a wrong spot)"
         )
     return {
         "m": operator.m,

@@ -85,10 +85,10 @@ def full_resolution_report(tmp_path_factory):
 
 def test_report_has_every_section(report):
     page = report.read_text()
-    for title in ("Capture", "Fig. 4", "Fig. 5", "Fig. 6", "Operator diagnostics", "flashlight"):
+    for title in ("Capture", "Fig. 4", "Fig. 5", "Fig. 6", "Operator diagnostics", "flashlight", "Is the scene Lambertian?"):
         assert title in page
     srcs = re.findall(r'<img src="([^"]+)"', page)
-    assert {"spots.png", "fig5.png", "photo-flashlight.png"} <= set(srcs)
+    assert {"spots.png", "fig5.png", "photo-flashlight.png", "lambertian.png"} <= set(srcs)
     assert all((report.parent / s).exists() and "/" not in s for s in srcs)
 
 

@@ -38,10 +38,14 @@ from ilt.cli.options import (
 @click.option("--gloss", type=click.FloatRange(0, 1), default=0.0, show_default=True,
               help="Share of every surface's reflection that is glossy (a lobe about the mirror direction), "
                    "flatland scenes without --frames: a non-Lambertian scene, for the reciprocity check.")
+@click.option("--patterns", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Without --frames: also K photos under the projector's stripes shifted by 1/K of a cycle "
+                   "each (photos/patterns/, for 'ilt separate') and its fully lit photo (photos/projector-full) "
+                   "with its true bounces.")
 @force_option
 @json_option
 def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frames, spot, fine, px_per_beam,
-            gloss, force, as_json):
+            gloss, patterns, force, as_json):
     """Simulate SCENE (m, box, textured, occluded) and write its ISF directory.
 
     Writes T.npy, samples.csv, manifest.json, photos/ (flashlight, room light and
@@ -55,6 +59,8 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
     """
     if gloss > 0 and (frames or scene == "box"):
         raise click.UsageError("--gloss is for the flatland scenes (m, textured, occluded) without --frames")
+    if patterns and frames:
+        raise click.UsageError("--patterns is for the exact scenes, without --frames")
     if frames:
         from ilt.sim.render import render_scene
         from ilt.workspace.simulate import write_frames
@@ -75,7 +81,7 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
     params = {"scene": scene, "beams": sc.m, "albedo": albedo, "seed": seed}
     try:
         path = write_simulation(sc, output, params, n_bounces=n_bounces, max_bounces=tracer_bounces, force=force,
-                                gloss=gloss)
+                                gloss=gloss, patterns=patterns)
     except ValueError as error:
         raise click.UsageError(str(error)) from error
     emit(as_json, {"output": str(path), "scene": scene, "m": sc.m, "layout": list(sc.layout)}, [str(path)])

@@ -89,22 +89,31 @@ def room(geometry: Geometry, lamp, ambient: float = 1.0, lamp_power: float = 1.0
     return geometry.albedo * sky + point_source(geometry, lamp, lambda omega: np.full(len(omega), float(lamp_power)))
 
 
-def projector(geometry: Geometry, position, target, half_angle_deg: float, period_deg: float = 6.0,
-              pattern: str = "stripes", power: float = 1.0) -> np.ndarray:
+#: the projector's default stripe width (degrees): a cycle is twice it
+PROJECTOR_PERIOD_DEG = 6.0
+
+
+def projector(geometry: Geometry, position, target, half_angle_deg: float, period_deg: float = PROJECTOR_PERIOD_DEG,
+              pattern: str = "stripes", power: float = 1.0, phase_deg: float = 0.0) -> np.ndarray:
     """Point source modulated over angle by a binary pattern, with shadows; (N,) float64.
 
-    ``pattern``: "stripes" (bright where floor(horizontal angle / period) is even) or
-    "checker" (also alternating in the vertical angle; same as stripes in flatland).
+    ``pattern``: "stripes" (bright where floor((horizontal angle - phase) / period) is
+    even), "checker" (also alternating in the vertical angle; same as stripes in
+    flatland) or "full" (every projector pixel on). ``phase_deg`` shifts the pattern
+    (Nayar et al. 2006's shifted patterns: :mod:`ilt.separate`).
     """
-    if pattern not in ("stripes", "checker"):
-        raise ValueError(f"projector pattern must be 'stripes' or 'checker', got {pattern!r}")
+    if pattern not in ("stripes", "checker", "full"):
+        raise ValueError(f"projector pattern must be 'stripes', 'checker' or 'full', got {pattern!r}")
     if period_deg <= 0:
         raise ValueError(f"projector period_deg must be > 0, got {period_deg}")
 
     def intensity(omega):
-        cells = np.floor(np.degrees(_beam_angles(omega, position, target)) / period_deg).astype(int)
+        shifted = np.degrees(_beam_angles(omega, position, target))
+        shifted[:, 0] -= phase_deg
+        cells = np.floor(shifted / period_deg).astype(int)
         parity = cells[:, 0] if pattern == "stripes" else cells.sum(axis=1)
-        return power * ((parity % 2 == 0) & _cone(omega, position, target, half_angle_deg))
+        lit = np.ones(len(omega), dtype=bool) if pattern == "full" else parity % 2 == 0
+        return power * (lit & _cone(omega, position, target, half_angle_deg))
 
     return point_source(geometry, position, intensity)
 

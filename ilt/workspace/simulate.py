@@ -23,6 +23,7 @@ from ilt.isf.lambertian import check_lambertian
 from ilt.isf.layout import splat
 from ilt.sim import ILLUMINATIONS, Scene
 from ilt.sim.gloss import glossy_scene
+from ilt.sim.lighting import DEFAULTS, PROJECTOR_PERIOD_DEG
 from ilt.sim.memory import require
 
 #: the largest m for which the (N, m, m) true n-bounce ISFs are written
@@ -37,6 +38,7 @@ def write_simulation(
     max_bounces: int | None = None,
     force: bool = False,
     gloss: float = 0.0,
+    patterns: int = 0,
 ) -> Path:
     """Write ``scene`` as an ISF directory at ``out`` (atomically), with ``lambertian.json``.
 
@@ -44,7 +46,10 @@ def write_simulation(
     bounces (the paper used 7); None gives the exact T. ``gloss`` > 0 (flatland only):
     that share of every patch's reflection glossy (:mod:`ilt.sim.gloss`); the truth then
     holds the photos' true bounces only (no A, T1 or n-bounce ISFs: the transport is
-    over pairs of patches).
+    over pairs of patches). ``patterns`` = K > 0: also the projector's photos for Nayar et
+    al.'s separation (``ilt separate``): ``photos/patterns/stripes-<k>.npy|.exr``, its
+    stripes shifted by k / K of a cycle, and ``photos/projector-full.npy|.exr`` (every
+    projector pixel on) with its true bounces.
     """
     out = Path(out)
     glossy = glossy_scene(scene, gloss) if gloss > 0 else None
@@ -72,12 +77,31 @@ def write_simulation(
                 attributes={"ilt:scene": scene.name, "ilt:illumination": kind},
             )
             save_npy(truth / "photos" / f"{kind}-bounces.npy", bounces)
+        if patterns:
+            _write_patterns(tmp, scene if glossy is None else glossy, scene, patterns, n_bounces)
         write_manifest(
             tmp, "simulate",
-            {**parameters, "truth_bounces": n_bounces, "tracer_bounces": max_bounces, "gloss": gloss},
+            {**parameters, "truth_bounces": n_bounces, "tracer_bounces": max_bounces, "gloss": gloss,
+             "patterns": patterns},
             extra=fields,
         )
     return out
+
+
+def _write_patterns(tmp: Path, lit, scene: Scene, count: int, n_bounces: int) -> None:
+    """The projector's shifted-stripe photos and its fully lit photo with truth (``lit``: Scene or GlossyScene)."""
+    period = DEFAULTS[scene.geometry.dim]["projector"].get("period_deg", PROJECTOR_PERIOD_DEG)
+    (tmp / "photos" / "patterns").mkdir()
+    shots = [("projector-full", tmp / "photos", {"pattern": "full"})]
+    shots += [(f"stripes-{k}", tmp / "photos" / "patterns", {"phase_deg": 2 * period * k / count})
+              for k in range(count)]
+    for name, directory, params in shots:
+        photo, bounces = lit.photo("projector", n_bounces=n_bounces, **params)
+        save_npy(directory / f"{name}.npy", photo)
+        write_exr(directory / f"{name}.exr", splat(photo, scene.samples, scene.frame_shape),
+                  attributes={"ilt:scene": scene.name, "ilt:illumination": f"projector {name}"})
+        if name == "projector-full":
+            save_npy(tmp / "truth" / "photos" / f"{name}-bounces.npy", bounces)
 
 
 def write_frames(scene, out: str | os.PathLike, parameters: dict, n_bounces: int = 8,
@@ -116,5 +140,7 @@ def write_frames(scene, out: str | os.PathLike, parameters: dict, n_bounces: int
             write_exr(tmp / "photos" / f"{kind}.exr", photo,
                       attributes={"ilt:scene": scene.name, "ilt:illumination": kind})
             save_npy(truth / "photos" / f"{kind}-bounces.npy", bounces)
+        if patterns:
+            _write_patterns(tmp, scene if glossy is None else glossy, scene, patterns, n_bounces)
         write_manifest(tmp, "simulate", {**parameters, "frames": True, "truth_bounces": n_bounces}, extra=plan)
     return out

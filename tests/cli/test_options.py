@@ -31,8 +31,9 @@ COMMANDS = {
     "report": ["-w/--workspace", "-o/--output", "--json"],
     "rig-emulator": ["--socket", "--fault", "--speed", "--laser-on", "--laser-off"],
     "run": ["CONFIG", "-w/--workspace", "--force", "--scheduler", "--scheduler-file", "--insecure", "--json"],
+    "separate": ["PHOTOS", "-o/--output", "--black", "--force", "--json"],
     "simulate": ["SCENE", "-o/--output", "--beams", "--albedo", "--seed", "--bounces", "--tracer-bounces", "--frames",
-                 "--spot", "--fine", "--px-per-beam", "--gloss", "--force", "--json"],
+                 "--spot", "--fine", "--px-per-beam", "--gloss", "--patterns", "--force", "--json"],
     "status": ["CONFIG", "-w/--workspace", "--verify", "--json"],
 }
 

@@ -23,7 +23,7 @@ LAYERS = [
     ["hdr"],
     ["spots"],
     ["isf"],
-    ["decompose", "refine"],
+    ["decompose", "refine", "separate"],
     ["report", "evaluate"],
     ["workspace"],
     ["cli"],

@@ -59,6 +59,8 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
     """
     if gloss > 0 and (frames or scene == "box"):
         raise click.UsageError("--gloss is for the flatland scenes (m, textured, occluded) without --frames")
+    if gloss > 0 and tracer_bounces is not None:
+        raise click.UsageError("--tracer-bounces and --gloss cannot be combined: the glossy scene's T is the exact solve")
     if patterns and frames:
         raise click.UsageError("--patterns is for the exact scenes, without --frames")
     if frames:
@@ -79,9 +81,6 @@ def command(scene, output, beams, albedo, seed, n_bounces, tracer_bounces, frame
 
     sc = make_scene(scene, beams=beams, albedo=albedo, seed=seed)
     params = {"scene": scene, "beams": sc.m, "albedo": albedo, "seed": seed}
-    try:
-        path = write_simulation(sc, output, params, n_bounces=n_bounces, max_bounces=tracer_bounces, force=force,
-                                gloss=gloss, patterns=patterns)
-    except ValueError as error:
-        raise click.UsageError(str(error)) from error
+    path = write_simulation(sc, output, params, n_bounces=n_bounces, max_bounces=tracer_bounces, force=force,
+                            gloss=gloss, patterns=patterns)
     emit(as_json, {"output": str(path), "scene": scene, "m": sc.m, "layout": list(sc.layout)}, [str(path)])

@@ -140,7 +140,5 @@ def write_frames(scene, out: str | os.PathLike, parameters: dict, n_bounces: int
             write_exr(tmp / "photos" / f"{kind}.exr", photo,
                       attributes={"ilt:scene": scene.name, "ilt:illumination": kind})
             save_npy(truth / "photos" / f"{kind}-bounces.npy", bounces)
-        if patterns:
-            _write_patterns(tmp, scene if glossy is None else glossy, scene, patterns, n_bounces)
         write_manifest(tmp, "simulate", {**parameters, "frames": True, "truth_bounces": n_bounces}, extra=plan)
     return out

@@ -638,7 +638,6 @@ def _diverging(isf: ISF, op_diag: dict, verdict: dict | None, accept: bool) -> d
             "a Lambertian scene that conserves energy (glossy or specular surfaces, flare, noise in T or a wrong spot)")
     if not accept:
         raise NotLambertian(f"{isf.path}: {what}: nothing written (--accept-non-lambertian writes the bounces, marked)")
-    op_diag["warnings"] = [w for w in op_diag["warnings"] if "spectral radius" not in w] + [f"{what}; written as asked"]
     return {**(verdict or {"verdict": "undecided", "reason": "no lambertian.json"}), "accepted": True,
             "spectral_radius_A": rho}
 

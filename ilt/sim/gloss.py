@@ -96,13 +96,13 @@ class GlossyScene:
         n = len(src)
         K = scipy.sparse.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
         v = g.visible
-        position = {int(p): r for r, p in enumerate(v)}
-        seen = np.array([dst[p] in position for p in range(n)], dtype=bool)
-        into = np.flatnonzero(seen)
+        row_of = np.full(len(g.area), -1)
+        row_of[v] = np.arange(len(v))
+        into = np.flatnonzero(row_of[dst] >= 0)       # pairs arriving at a patch the camera sees
         j = dst[into]
         up = np.broadcast_to(CAMERA_DIRECTION, (len(into), 2))
         readout = self._reflect(j, _unit(g.centre[j] - g.centre[src[into]]), up) / g.area[j]
-        R = scipy.sparse.csr_matrix((readout, ([position[int(x)] for x in j], into)), shape=(len(v), n))
+        R = scipy.sparse.csr_matrix((readout, (row_of[j], into)), shape=(len(v), n))
         return K, R, scipy.sparse.linalg.splu(scipy.sparse.identity(n, format="csc") - K)
 
     def _respond(self, power: np.ndarray, incoming: np.ndarray, bounces: int | None = None) -> np.ndarray:

@@ -13,12 +13,14 @@ import logging
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from ilt.decompose.fullres import full_resolution
+from ilt.decompose.noise import MAX_M, bounce_sigma, draws_for, entry_noise, photo_noise
 from ilt.io.exr import ImageError, read_exr, write_exr
 from ilt.io.frames import FrameError, PixelMapping
 from ilt.io.manifest import (
@@ -422,6 +424,7 @@ def decompose(
     executor=None,
     spill: bool = True,
     accept_non_lambertian: bool = False,
+    shown_as: str | os.PathLike | None = None,
 ) -> list[dict]:
     """Decompose every input into ``out/<stem>/``; returns one summary per input.
 
@@ -447,13 +450,19 @@ def decompose(
     a run again skips those (a log line each) whose ``out/<stem>`` records the same
     photo, T and parameters; an ``out/<stem>`` made otherwise needs ``force``.
     ``executor``: where the compressed solver compresses T's blocks (:func:`load_operator`);
-    no output depends on it.
+    no output depends on it. ``shown_as``: the directory the log lines name instead of
+    ``out`` (the final one, when ``out`` is a temporary that will be renamed to it).
+
+    Each bounce sample's noise is measured (:mod:`ilt.decompose.noise`) and the negatives
+    and noise of the bounces are judged by it (:func:`decomposition_diagnostics`): a
+    warning per problem, an INFO line when all is well.
     """
     photos = [read_photo(p, isf) for p in inputs]
     stems = [p.name for p in photos]
     if len(set(stems)) != len(stems):
         raise InputError(f"two inputs share a name ({stems}); their results would collide in {out}")
     out = Path(out)
+    shown = Path(shown_as) if shown_as is not None else out
     fingerprint = fingerprint_array(np.asarray(isf.T))
     parameters = decompose_parameters(isf, n_bounces, tol, solver, noise, regularise, samples_only, spill,
                                       accept_non_lambertian)
@@ -471,7 +480,7 @@ def decompose(
     todo = [p for p in photos if p.name not in done]
     for photo in photos:
         if photo.name in done:
-            log.info("%s: %s is already decomposed with these options; kept", photo.path, out / photo.name)
+            log.info("%s: %s is already decomposed with these options; kept", photo.path, shown / photo.name)
     if not todo:
         return [done[p.name] for p in photos]
     fine, why = None, "--samples-only"
@@ -501,16 +510,23 @@ def decompose(
             log.info("%s: the spots' direct light in other cells (%d entries, %.2g of a spot's on average) "
                      "is taken out of T before inverting", isf.path, Q.nnz, Q.sum() / isf.m)
         verdict = _diverging(isf, op_diag, verdict, accept_non_lambertian)
+        decompositions = {photo.name: _split(op, spilled, photo.values, n_bounces, tol) for photo in todo}
+        sigmas = _bounce_noise(isf, spilled, todo, decompositions, op_diag, regularise)
         for w in op_diag["warnings"]:
-            log.warning("%s: %s", isf.path, w)
+            moot = sigmas is not None and w == op_diag.get("condition_warning")
+            log.log(logging.INFO if moot else logging.WARNING, "%s: %s%s", isf.path, w,
+                    " (the bounces' own noise, measured below, is what it did)" if moot else "")
         created = not out.exists()
         summaries = {}
         try:
             for photo in todo:
-                dec, weights = _split(op, spilled, photo.values, n_bounces, tol)
-                diag = decomposition_diagnostics(photo.values, dec)
+                dec, weights = decompositions[photo.name]
+                diag = decomposition_diagnostics(photo.values, dec, None if sigmas is None else sigmas[photo.name],
+                                                 where=_sample_names(isf, photo))
                 for w in diag["warnings"]:
                     log.warning("%s: %s", photo.path, w)
+                for note in diag["notes"]:
+                    log.info("%s: %s", photo.path, note)
                 full = fine is not None and photo.frame
                 summary = {
                     "input": str(photo.path),
@@ -524,14 +540,15 @@ def decompose(
                     summary["lambertian"] = verdict
                 if full and photo.saturated is not None:
                     log.warning("%s: %d saturated pixels (values are lower bounds) left out of the full-resolution "
-                                "images (coverage 0, all residual)", photo.path, int(photo.saturated.sum()))
+                                "images (coverage 0, all residual); shorter exposures in its bracket keep them",
+                                photo.path, int(photo.saturated.sum()))
                 with staged_directory(out / photo.name, force=force) as tmp:
                     write_decomposition(tmp, photo, isf, dec, summary, fine if full else None, op.t1, weights)
                     write_manifest(
                         tmp, "decompose", parameters,
                         inputs={str(photo.path): summary["input_fingerprint"], str(isf.path): fingerprint},
                     )
-                log.info("%s -> %s (%s)", photo.path, out / photo.name, diag["stop_reason"])
+                log.info("%s -> %s (%s)", photo.path, shown / photo.name, diag["stop_reason"])
                 summaries[photo.name] = {**summary, "output": str(out / photo.name)}
         except BaseException:
             if created and out.exists() and not any(out.iterdir()):
@@ -539,6 +556,51 @@ def decompose(
             raise
         del op, T_op   # before the stack removes a memory-mapped unmixed T
     return [done.get(p.name) or summaries[p.name] for p in photos]
+
+
+def _bounce_noise(isf: ISF, spilled: Unmixing | None, photos: list[Photo], decompositions: dict,
+                  op_diag: dict, regularise: bool) -> dict[str, np.ndarray] | None:
+    """Each photo's bounce sigma (:func:`ilt.decompose.noise.bounce_sigma`), recorded in
+    ``op_diag["bounce_noise"]``; None (and the reason, at INFO) when it cannot be measured."""
+    if isf.m > MAX_M:
+        why = f"m = {isf.m} > {MAX_M}: the draws would cost {draws_for(isf.m)} factorisations of T"
+    else:
+        T_std, source = entry_noise(isf, op_diag.get("noise"), op_diag.get("noise_source", "given"))
+        why = None if T_std is not None else source
+    if why is not None:
+        log.info("%s: the bounces are not judged against their noise (%s)", isf.path, why)
+        op_diag["bounce_noise"] = {"measured": False, "reason": why}
+        return None
+    start = time.perf_counter()
+    T = np.asarray(isf.T, dtype=np.float64)
+    stds = [photo_noise(isf, p.values, p.frame) for p in photos]
+    try:
+        sigmas = bounce_sigma(
+            T, T_std, [decompositions[p.name][0] for p in photos], [p.values for p in photos],
+            lambda op, values, n: _split(op, spilled, values, n, 0.0)[0], stds,
+            transform=None if spilled is None else spilled.unmix)
+    except TransportError as exc:
+        log.info("%s: the bounces are not judged against their noise (%s)", isf.path, exc)
+        op_diag["bounce_noise"] = {"measured": False, "reason": str(exc)}
+        return None
+    seconds = time.perf_counter() - start
+    draws = draws_for(isf.m)
+    op_diag["bounce_noise"] = {
+        "measured": True, "draws": draws, "seconds": seconds, "T_noise": source,
+        "photo_noise": "the beam frames' noise model (noise.json)" if any(s is not None for s in stds) else None,
+        "regularised": "the draws are split without regularisation: an upper bound" if regularise else None}
+    log.info("%s: the bounces' noise from %d draws of T%s (%.2g s)", isf.path, draws,
+             " and of the photos" if any(s is not None for s in stds) else "", seconds)
+    return {p.name: s for p, s in zip(photos, sigmas)}
+
+
+def _sample_names(isf: ISF, photo: Photo):
+    """How the messages name sample i: the pixel where it is seen (full-frame sensor
+    pixels) for a frame, its row and plan beam for a sample vector."""
+    if photo.frame and isf.samples is not None:
+        return lambda i: f"pixel ({isf.samples[i][0]:.0f}, {isf.samples[i][1]:.0f})"
+    beams = isf.beams
+    return lambda i: f"sample {i}" + (f" (plan beam {int(beams[i])})" if beams is not None else "")
 
 
 def _spill_used(isf: ISF, spill: bool) -> bool:

@@ -239,9 +239,7 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
         scratch.record(kept)
     flag_large(spots, params.large_factor)
     counts = {name: sum(name in s.flags for s in spots) for name in FLAGS}
-    for b, s in zip(beams, spots):
-        if s.flags:
-            log.warning("beam %d (%s): %s", b, names[b], format_flags(s.flags))
+    report_flags(beams, spots, names, out)
     fields = {"m": len(beams), "layout": list(layout), "frame_shape": list(total.shape),
               "pixel_mapping": mapping.as_dict(), "flag_counts": counts, "clean": sum(not s.flags for s in spots)}
     with staged_directory(out, force=force) as tmp:
@@ -255,6 +253,44 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
         parameters["dark"] = str(dark) if dark else None
         write_manifest(tmp, "centroids", parameters, inputs=inputs, extra=fields)
     return {**fields, "output": str(out)}
+
+
+#: flags that say a beam's spot is not what the scan meant to measure (no spot, a second
+#: light, clipped values): WARNING, each named; the others (shape: a fold or a grazing
+#: surface stretches a spot; outside: the plan reaches past the view) are INFO unless
+#: more than SHAPE_WARN of the beams carry them
+FAULT_FLAGS = ("none", "multiple", "saturated")
+SHAPE_WARN = 0.10
+
+
+def report_flags(beams, spots, names, out: Path) -> None:
+    """Log each flagged beam (INFO) and what the user should look at (WARNING): the
+    beams with a fault flag, or shape flags on more than :data:`SHAPE_WARN` of the scan."""
+    flagged = [(b, s) for b, s in zip(beams, spots) if s.flags]
+    for b, s in flagged:
+        log.info("beam %d (%s): %s", b, names[b], format_flags(s.flags))
+    overlay = Path(out) / OVERLAY_FILE
+    for name in FAULT_FLAGS:
+        hit = [b for b, s in flagged if name in s.flags]
+        if hit:
+            log.warning("%s %s flagged %s (%s): build-isf drops %s; look at %s", _beam_list(hit),
+                        "is" if len(hit) == 1 else "are", name, _FAULT_MEANS[name],
+                        "it" if len(hit) == 1 else "them", overlay)
+    shape = [b for b, s in flagged if not set(s.flags) & set(FAULT_FLAGS)]
+    if len(shape) > SHAPE_WARN * len(beams):
+        log.warning("%d of %d beams have flagged spot shapes (%s): build-isf drops them; focus, the spot size or "
+                    "the region of interest may be off: look at %s", len(shape), len(beams),
+                    ", ".join(sorted({k for b, s in flagged if b in shape for k in s.flags})), overlay)
+
+
+_FAULT_MEANS = {"none": "no spot above the noise: laser off, blocked or aimed outside the view",
+                "multiple": "a second spot: a reflection, flare or another light",
+                "saturated": "the spot is clipped in every exposure: add a shorter one to the bracket"}
+
+
+def _beam_list(beams: list[int]) -> str:
+    shown = ", ".join(map(str, beams[:8])) + (f" and {len(beams) - 8} more" if len(beams) > 8 else "")
+    return f"beam {shown}" if len(beams) == 1 else f"beams {shown}"
 
 
 def _capture_beams(path: Path):

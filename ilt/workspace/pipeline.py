@@ -315,7 +315,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
     def make_decompose():
         with staged_directory(d["decompose"], force=True) as tmp:
             decompose(load_isf(d["build-isf"], mmap=True), photo_paths(ws, cfg), tmp, cache_dir=default_cache_dir(),
-                      force=True, executor=executor, **decompose_options)
+                      force=True, executor=executor, shown_as=d["decompose"], **decompose_options)
             write_manifest(tmp, "decompose", fingerprinted(dec))
 
     def decomposed_by_hand():

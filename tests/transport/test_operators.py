@@ -1,5 +1,7 @@
 """ilt.transport against known answers: C1 = I - A for a known A, identities that must hold."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -167,18 +169,48 @@ def test_wrong_length_photo_is_refused():
         bounce_images(op, np.full(10, np.inf))
 
 
-def test_noise_in_t_is_reported_as_negative_bounces():
-    A, D, T = physical_transport(80, albedo=0.7, seed=6)
-    L = np.linalg.solve(np.eye(80) - A, np.ones(80))
-    noisy = T + np.random.default_rng(0).normal(scale=0.02, size=T.shape) * T.max()
-    dec = bounce_images(cancellation_operator(noisy), L, n_bounces=4)
-    diag = decomposition_diagnostics(L, dec)
-    assert max(diag["negative_share"]) > 0.01
-    assert min(diag["most_negative"]) < 0
-    assert any("negative" in w and "photo's peak" in w for w in diag["warnings"])
-    # the same T without noise: no warning
-    clean = decomposition_diagnostics(L, bounce_images(cancellation_operator(T), L, n_bounces=4))
-    assert clean["negative_share"] == [0.0] * 4 and clean["warnings"] == []
+def test_negatives_warn_past_a_tenth_of_a_bounce_and_only_beyond_its_noise():
+    """A negative sample is wrong by at least its size: negatives holding > 10% of a
+    bounce's 2-norm warn (one line for all bounces); with each sample's sigma known,
+    only when they are also past 5 sigma of it."""
+    A, D, T = physical_transport(40, albedo=0.7, seed=6)
+    L = np.linalg.solve(np.eye(40) - A, np.ones(40))
+    dec = bounce_images(cancellation_operator(T), L, n_bounces=3)
+    clean = decomposition_diagnostics(L, dec)
+    assert clean["negative_energy"] == [0.0] * 3 and clean["warnings"] == []
+    assert clean["notes"] == ["bounces as expected: no negatives"]
+    bounces = dec.bounces.copy()
+    size = 0.2 * np.linalg.norm(bounces[1])
+    bounces[1, 7] = -size                                 # about 20% of bounce 2, one sample
+    bounces[2, 9] = -0.05 * np.linalg.norm(bounces[2])    # 5% of bounce 3: below the bar
+    faulty = replace(dec, bounces=bounces, residual=L - bounces.sum(axis=0))   # still closes
+    d = decomposition_diagnostics(L, faulty, where=lambda i: f"pixel {i}")
+    assert d["negative_energy"][1] == pytest.approx(size / np.linalg.norm(bounces[1]), rel=1e-12)
+    (w,) = d["warnings"]
+    assert w.startswith("bounce 2 hold") and "at least 20% of bounce 2" in w and "pixel 7" in w
+    assert "noise of T is not known" in w
+    # within the noise: the same negatives with a sigma as large are not a fault
+    loud = decomposition_diagnostics(L, faulty, sigma=np.abs(bounces) + 0.3 * np.abs(bounces).max())
+    assert loud["warnings"][:1] != [w] and not any("negatives" in x for x in loud["warnings"])
+    assert loud["worst_sigma"][1] > -5
+    # beyond it
+    quiet = decomposition_diagnostics(L, faulty, sigma=np.full(bounces.shape, 1e-3 * np.abs(bounces).max()))
+    (w,) = quiet["warnings"]
+    assert "beyond the noise" in w and "bounce 2, " in w and "sigma at sample 7" in w
+
+
+def test_noise_of_the_first_bounces_warns_past_a_fifth():
+    A, D, T = physical_transport(30, albedo=0.7, seed=2)
+    L = np.linalg.solve(np.eye(30) - A, np.ones(30))
+    dec = bounce_images(cancellation_operator(T), L, n_bounces=4)
+    sigma = 0.1 * np.abs(dec.bounces)
+    assert decomposition_diagnostics(L, dec, sigma)["warnings"] == []
+    sigma[1] *= 3.0                                            # bounce 2: 30% noise
+    sigma[3] *= 9.0                                            # bounce 4 is not watched
+    d = decomposition_diagnostics(L, dec, sigma)
+    assert d["noise_share"][1] == pytest.approx(0.3)
+    assert d["warnings"] == ["bounce 2 is noisy: its noise is 30% of its signal; longer exposures, more frames "
+                             "per beam or --regularise lower it"]
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -1,0 +1,127 @@
+"""How much of each bounce sample is noise: Monte Carlo draws of T and of the photo.
+
+A measured T carries each entry's noise (``T_var.npy``, :mod:`ilt.isf.noise`, or one
+sigma for all entries: given, or measured from T's negative entries), and a photo
+carries its pixels' (the beam frames' noise model applied to its cell sums: the same
+camera and merge). A bounce sample's noise is what the decomposition makes of them,
+through the inverse of T and the recursion: far from linear in T for the higher bounces,
+and different at every sample. :func:`bounce_sigma` measures it the direct way: ``draws``
+copies of T and of each photo, each with one draw of their noise added, are decomposed
+again with a dense operator, and the spread of their bounces about the photo's own is
+each sample's sigma (:func:`ilt.transport.diagnostics.decomposition_diagnostics` judges
+negatives and noise shares by it).
+
+The cost is ``draws`` dense factorisations of T per run (shared by every photo), so the
+draws stop at :data:`MAX_M` samples; past it the bounces are not judged against noise
+(an INFO line says so).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ilt.isf.directory import ISF
+from ilt.isf.noise import T_VAR_FILE, FrameNoise, cell_variance, read_noise
+from ilt.transport.operators import CancellationOperator, Decomposition, cancellation_operator
+from ilt.transport.scan import TransportError
+
+#: largest m whose bounces are judged against noise (dense draws; 1.1 s a draw at m = 4096)
+MAX_M = 4096
+
+#: draws at small m, and the fewest at MAX_M (each costs a factorisation of T)
+DRAWS = 24
+MIN_DRAWS = 8
+
+
+def draws_for(m: int) -> int:
+    """Draws at ``m`` samples: :data:`DRAWS` up to m = 512, then fewer, so the work
+    (draws x m^3) grows no faster than one factorisation's; at least :data:`MIN_DRAWS`."""
+    return int(max(MIN_DRAWS, min(DRAWS, round(DRAWS * (512 / max(m, 1)) ** 1.5))))
+
+
+def bounce_sigma(
+    T: np.ndarray,
+    T_std: np.ndarray | float,
+    references: Sequence[Decomposition],
+    values: Sequence[np.ndarray],
+    split: Callable[[CancellationOperator, np.ndarray, int], Decomposition],
+    values_std: Sequence[np.ndarray | None] | None = None,
+    transform: Callable[[np.ndarray], np.ndarray] | None = None,
+    draws: int | None = None,
+    seed: int = 0,
+) -> list[np.ndarray]:
+    """Each bounce sample's noise (sigma, the shape of its reference's ``bounces``) for
+    every photo.
+
+    T (m, m) unit columns; T_std: its entries' sigma, (m, m) or one number; references:
+    each photo's decomposition with T; values: the photos' sample vectors, and
+    values_std their sigma (None: noise-free); split(operator, values, n) decomposes
+    ``values`` into n bounces as the references were; transform: what is done to T
+    before its operator is built (the spill's unmixing), None for nothing.
+    """
+    m = T.shape[0]
+    draws = draws_for(m) if draws is None else int(draws)
+    rng = np.random.default_rng(seed)
+    values_std = [None] * len(values) if values_std is None else list(values_std)
+    sums = [np.zeros_like(ref.bounces) for ref in references]
+    used = 0
+    for _ in range(draws):
+        drawn = np.asarray(T, dtype=np.float64) + np.asarray(T_std) * rng.standard_normal((m, m))
+        try:
+            op = cancellation_operator(drawn if transform is None else transform(drawn))
+        except TransportError:   # a draw T cannot be inverted (noise as large as T): not counted
+            continue
+        used += 1
+        for k, (ref, v, s) in enumerate(zip(references, values, values_std)):
+            v = v if s is None else v + s * rng.standard_normal(v.shape)
+            dec = split(op, v, ref.count)
+            sums[k] += (dec.bounces - ref.bounces) ** 2
+    if used < 2:
+        raise TransportError("the noise of T is as large as T: no draw of it can be inverted")
+    return [np.sqrt(s / used) for s in sums]
+
+
+def entry_noise(isf: ISF, noise: float | None, source: str) -> tuple[np.ndarray | float | None, str]:
+    """The sigma of T's entries for the draws, and where it came from: ``noise`` when the
+    user gave it, else build-isf's ``T_var.npy`` (each entry's own), else ``noise``
+    as measured (from the beam frames or T's negative entries); (None, why) when unknown."""
+    directory = Path(isf.path).parent
+    if source != "given" or noise is None:
+        path = directory / T_VAR_FILE
+        if path.exists():
+            T_var = np.load(path, mmap_mode="r")
+            if T_var.shape == (isf.m, isf.m):
+                return np.sqrt(np.maximum(np.asarray(T_var, dtype=np.float64), 0.0)), f"{path}"
+    if noise is not None and noise > 0:
+        return float(noise), source
+    return None, "the noise of T is not known (no T_var.npy, no --noise, no negative entries in T)"
+
+
+def photo_noise(isf: ISF, values: np.ndarray, frame: bool) -> np.ndarray | None:
+    """Sigma of a photo's samples: the beam frames' noise model (``noise.json``) applied to
+    the photo's cell sums (a photo taken and merged like the beam frames); None for a
+    sample vector or an ISF without a noise model."""
+    if not frame:
+        return None
+    try:
+        record = read_noise(Path(isf.path).parent)
+    except ValueError:
+        return None
+    if record is None:
+        return None
+    model = FrameNoise(tuple(record["levels"]), tuple(record["variances"]), record["frames"], record["pixels"],
+                       record["bins"], float(record["slope"]))
+    level = np.maximum(np.asarray(values, dtype=np.float64), 0.0)
+    shaped = level if level.ndim == 2 else level[:, None]
+    if isf.cells is not None:
+        area = np.bincount(isf.cells[isf.cells >= 0].ravel(), minlength=isf.m)[:isf.m]
+        variance = cell_variance(model, shaped, area)
+    else:
+        variance = model.pixel_variance(shaped)
+    return np.sqrt(variance).reshape(level.shape)
+
+
+__all__ = ["MAX_M", "bounce_sigma", "draws_for", "entry_noise", "photo_noise"]

@@ -183,6 +183,7 @@ def test_existing_output_is_kept_without_force(isf_dir, tmp_path):
 
 def test_demo_quick(tmp_path):
     result = run("demo", "-o", tmp_path / "demo", "--quick", "--json")
+    assert "WARNING" not in result.stderr, [line for line in result.stderr.splitlines() if "WARNING" in line]
     results = json.loads(result.stdout)
     assert [r["scene"] for r in results] == ["m", "box"]
     for r in results:

@@ -55,6 +55,11 @@ def test_tutorial_sections_2_and_3_run_as_written(tmp_path):
     done = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
+    # a healthy run, the README's example among it (section 3 runs configs/sim.toml): nothing to act on,
+    # and the lines name the files the user gets, not the stages' temporaries
+    assert "WARNING" not in done.stderr, [line for line in done.stderr.splitlines() if "WARNING" in line]
+    assert ".tmp-" not in done.stderr, [line for line in done.stderr.splitlines() if ".tmp-" in line]
+    assert "scan2/decompose/room (computed all" in done.stderr
     scan = tmp_path / "scan"
     # §2: "32 beams x 11 exposures + dark -> capture/"
     beams = sorted((scan / "capture").glob("beam-*"))

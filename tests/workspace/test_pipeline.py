@@ -47,6 +47,30 @@ def test_build_isf_reads_the_frames_centroids_kept_and_leaves_none(workspace, tm
         assert np.array_equal(np.load(workspace / "isf" / name), np.load(tmp_path / "isf" / name)), name
 
 
+def test_a_wrong_spot_warns_at_build_isf_and_decompose_refuses_its_t(workspace, tmp_path):
+    """Two beams' spots swapped (as when a reflection is taken for a spot): build-isf
+    says which beams light another's cell more than their own, and decompose refuses
+    the T (its series diverges), one line, nothing written."""
+    import shutil
+
+    shutil.copytree(workspace / "spots", tmp_path / "spots")
+    lines = (tmp_path / "spots" / "spots.csv").read_text().splitlines()
+    a, b = lines[3].split(","), lines[4].split(",")
+    a[1:3], b[1:3] = b[1:3], a[1:3]
+    lines[3], lines[4] = ",".join(a), ",".join(b)
+    (tmp_path / "spots" / "spots.csv").write_text("\n".join(lines) + "\n")
+    built = CliRunner().invoke(cli, ["build-isf", str(workspace / "hdr"), str(tmp_path / "spots"), "-o",
+                                     str(tmp_path / "isf"), "-j", "1"])
+    assert built.exit_code == 0, built.output
+    warned = [line for line in built.stderr.splitlines() if "WARNING" in line]
+    assert len(warned) == 1 and "2 beams light another beam's cell more than their own" in warned[0]
+    assert f"{a[0]} -> {b[0]}, {b[0]} -> {a[0]}" in warned[0] and "overlay.png" in warned[0]
+    photo = workspace / "photos" / "flashlight.exr"
+    refused = CliRunner().invoke(cli, ["decompose", "--isf", str(tmp_path / "isf"), str(photo), "-o",
+                                       str(tmp_path / "out"), "--no-cache"])
+    assert refused.exit_code != 0 and "diverges" in refused.stderr and not (tmp_path / "out").exists()
+
+
 def test_second_run_skips_every_stage(workspace):
     result = run("run", "-w", str(workspace), "--json")
     assert stages_run(result) == []

@@ -49,7 +49,7 @@ def read_log(path: str | os.PathLike) -> list[dict]:
             records.append(json.loads(line))
         except json.JSONDecodeError:
             if k == len(lines) - 1:
-                log.warning("%s: last line cut short (crash while writing it); ignored", path)
+                log.info("%s: last line cut short (crash while writing it); ignored", path)
             else:
                 raise CaptureLogError(f"{path}:{k + 1}: not a JSON record; the log is damaged") from None
     return records

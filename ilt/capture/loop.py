@@ -311,7 +311,7 @@ def _beam(cfg: RigConfig, rig: Rig, directory: Path, journal: CaptureLog, j: int
         os.replace(beam_dir, to)
         _fsync_dir(directory)
         journal.append("set_aside", beam=j, to=str(to.relative_to(directory)))
-        log.warning("beam %d was interrupted: its frames are kept in %s; shooting it again", j, to)
+        log.info("beam %d was interrupted: its frames are kept in %s; shooting it again", j, to)
     beam_dir.mkdir()
     pan, tilt = (int(v) for v in rig.steps[j])
     got = rig.ptu.move(pan, tilt)

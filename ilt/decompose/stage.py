@@ -157,7 +157,7 @@ def load_operator(
             log.info("operators for T %s… read from the cache %s", key[:12], entry)
             return op, {**diagnostics, **notes, "cached": True}
         except (OSError, ValueError, KeyError) as exc:
-            log.warning("ignoring the operator cache %s (%s); rebuilding it", entry, exc)
+            log.info("ignoring the operator cache %s (%s); rebuilding it", entry, exc)
     log.info("factorising T (m = %d)", m)
     T = scan_isf(T)
     op = cancellation_operator(T)

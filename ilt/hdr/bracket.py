@@ -111,7 +111,7 @@ def logged_fingerprints(capture_dir: str | os.PathLike) -> dict[str, dict[str, s
     try:
         records = read_log(path)
     except CaptureLogError as exc:
-        log.warning("%s; every frame will be hashed", exc)
+        log.info("%s; every frame will be hashed", exc)
         return {}
     beams: dict[str, dict[str, str]] = {}
     for r in records:

@@ -82,7 +82,7 @@ def _keep_frame(scratch, fd: int, beam: int, frame: np.ndarray) -> bool:
         scratch.keep(fd, beam, frame)
         return True
     except OSError as exc:
-        log.warning("%s: cannot keep beam %d's decoded frame (%s); build-isf will decode it again",
+        log.info("%s: cannot keep beam %d's decoded frame (%s); build-isf will decode it again",
                     scratch.path, beam, exc.strerror or exc)
         return False
 
@@ -278,7 +278,7 @@ def report_flags(beams, spots, names, out: Path) -> None:
                         "it" if len(hit) == 1 else "them", overlay)
     shape = [b for b, s in flagged if not set(s.flags) & set(FAULT_FLAGS)]
     if len(shape) > SHAPE_WARN * len(beams):
-        log.warning("%d of %d beams have flagged spot shapes (%s): build-isf drops them; focus, the spot size or "
+        log.warning("%d of %d beams have flagged spots (%s): build-isf drops them; the focus, the spot size or "
                     "the region of interest may be off: look at %s", len(shape), len(beams),
                     ", ".join(sorted({k for b, s in flagged if b in shape for k in s.flags})), overlay)
 

@@ -834,7 +834,7 @@ def compressed_operator(T: np.ndarray | IsfMatrix, tol: float | None = None, poi
     level = logging.INFO if m >= PROGRESS_M else logging.DEBUG
     source_file = mapped_file(T) if executor is not None else None
     if executor is not None and source_file is None:
-        log.warning("compressed: T is not a memory-mapped .npy file in C order (it was changed in memory, "
+        log.info("compressed: T is not a memory-mapped .npy file in C order (it was changed in memory, "
                     "e.g. by --regularise, or its file is in Fortran order): its blocks are compressed here, "
                     "not on the cluster")
     if source_file is not None:

@@ -284,7 +284,7 @@ def series_operator(T: np.ndarray | IsfMatrix, threshold: float = 0.0, tol: floa
         raise TransportError(f"series diverges: spectral radius of I - D^-1 T is {rho:.3g} >= 1; use --solver dense")
     predicted = iterations_needed(rho, tol)
     if rho > RHO_WARN:
-        log.warning("series: spectral radius of I - D^-1 T is %.4f: about %d iterations per solve", rho, predicted)
+        log.info("series: spectral radius of I - D^-1 T is %.4f: about %d iterations per solve", rho, predicted)
     if max_iterations is None:
         max_iterations = max(100, 3 * predicted)
     probes = np.zeros((m, count))

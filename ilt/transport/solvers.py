@@ -326,7 +326,7 @@ def build_operator(T: np.ndarray | IsfMatrix, solver: str = "auto", noise: float
             op.solve(np.ones(T.shape[0]))
             return op, reason
         except TransportError as exc:
-            log.warning("mixed precision fails on T (%s); using dense", exc)
+            log.info("mixed precision fails on T (%s); using dense", exc)
             reason += f"; float32 failed ({exc}), fell back to dense"
     return cancellation_operator(isf), reason
 

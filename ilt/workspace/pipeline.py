@@ -621,7 +621,7 @@ def run_capture(stage: Stage, state: StageState, cfg: RunConfig, force: bool, pr
         while (aside := stage.directory.with_name(f"{stage.directory.name}.previous-{k}")).exists():
             k += 1
         os.replace(stage.directory, aside)
-        log.warning("capture: the previous scan is kept in %s", aside)
+        log.info("capture: the previous scan is kept in %s", aside)
     resume = (stage.directory / LOG_NAME).exists()
     log.info("capture: %s (%s)", f"refine pass {len(passes)}: adding its beams" if extending else
              "resuming" if resume else "scanning", state.reason or state.state)
@@ -669,7 +669,7 @@ def _run_pass(ws: Workspace, cfg: RunConfig, passes: list[Pass], force: bool, pr
     if force and not passes:
         aside = set_aside(ws)
         if aside:
-            log.warning("refine: the previous passes are kept in %s", aside)
+            log.info("refine: the previous passes are kept in %s", aside)
     install_config(ws, cfg)
     _remove_scratch(ws)  # frames a killed run kept
     try:

@@ -59,3 +59,17 @@ def test_out_of_limit_plan_names_the_beam():
     steps = np.array([[0, 0], [4000, 0], [5000, 0]])
     with pytest.raises(ConfigError, match=r"beam 1: pan 4000 steps is outside the unit's limits \[-3090, 3090\] \(2 beam"):
         check_limits(steps, {"pan_min": -3090, "pan_max": 3090, "tilt_min": -907, "tilt_max": 604})
+
+
+def test_a_laser_switched_by_hand_says_so_before_the_scan(caplog):
+    """control = "none": nothing switches the laser, so the user must, and frames are
+    labelled on/off as if it obeyed: a warning with what to do."""
+    import logging
+
+    from ilt.capture.config import LaserConfig
+    from ilt.capture.laser import open_laser
+
+    with caplog.at_level(logging.WARNING, logger="ilt.capture"):
+        laser = open_laser(LaserConfig(control="none"), None)
+    assert laser.line is None
+    assert "laser control 'none': switch the laser by hand" in caplog.text

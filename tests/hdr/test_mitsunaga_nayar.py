@@ -120,7 +120,7 @@ def test_calibrate_8bit_tiff_files_through_the_cli(tmp_path):
     assert np.abs(f(grid) - _true_inverse(grid)).max() <= 0.01
 
 
-def test_response_json_holds_a_table_and_is_written_into_a_new_directory(tmp_path):
+def test_response_json_holds_a_table_and_is_written_into_a_new_directory(tmp_path, monkeypatch):
     rng = np.random.default_rng(2)
     files = [write_ldr(tmp_path / f"f{k}.tif", _scene(60, 100), t, 1.0, LDR, rng) for k, t in enumerate(TIMES)]
     out = tmp_path / "new" / "deeper" / "r.json"
@@ -131,6 +131,17 @@ def test_response_json_holds_a_table_and_is_written_into_a_new_directory(tmp_pat
     assert m.size == 256 and f[0] == 0 and f[-1] == 1 and np.all(np.diff(f) >= 0)
     assert np.allclose(np.polynomial.polynomial.polyval(m ** data["exponent"], data["coefficients"]), f, atol=1e-9)
     assert np.all(np.diff(data["bernstein"]) >= 0) and out.with_suffix(".png").exists()
+    # a fit stopped before it settles (here: one reweighting step allowed; a bracket's own fits settle, or
+    # stall, which also ends the loop): it says so, and what to try
+    import functools
+
+    import ilt.hdr.stages
+
+    monkeypatch.setattr(ilt.hdr.stages, "fit_response", functools.partial(fit_response, max_iterations=1))
+    result = CliRunner().invoke(cli, ["calibrate", *map(str, files), "-o", str(tmp_path / "t.json"), "--order", "4",
+                                      "--no-plot", "--tolerance", "1e-300"])
+    assert result.exit_code == 0, result.output
+    assert "the fit did not converge to tolerance 1e-300" in result.stderr and "try --order" in result.stderr
     blocked = tmp_path / "a-file"
     blocked.write_text("")
     result = CliRunner().invoke(cli, ["calibrate", *map(str, files), "-o", str(blocked / "r.json")])

@@ -1,6 +1,7 @@
 """centroids -> build-isf -> decompose end to end on rendered frames, against the truth."""
 
 import json
+import logging
 import os
 import shutil
 from concurrent.futures import ThreadPoolExecutor
@@ -233,8 +234,12 @@ def test_flagged_and_duplicate_beams_are_dropped_with_a_warning(runs, tmp_path, 
     f7, f8 = lines[8].split(","), lines[9].split(",")
     lines[9] = ",".join([f8[0], str(float(f7[1]) + 0.5), f7[2]] + f8[3:])   # beam 8 on top of beam 7
     (spots / "spots.csv").write_text("\n".join(lines) + "\n")
+    caplog.set_level(logging.INFO, logger="ilt.isf")
     summary = build_isf(sim / "hdr", spots, tmp_path / "isf", workers=1)
     assert [d["beam"] for d in summary["drops"]] == [3, 8]
+    # the flag was centroids' to warn of (with what to look at); the duplicate is build-isf's own finding
+    levels = {r.getMessage().split(":")[0]: r.levelname for r in caplog.records if "dropping beam" in r.getMessage()}
+    assert levels == {"dropping beam 3": "INFO", "dropping beam 8": "WARNING"}
     assert "flagged: multiple=0.4" in summary["drops"][0]["reason"]
     assert "near-duplicate" in summary["drops"][1]["reason"]
     assert "dropping beam 3" in caplog.text and "dropping beam 8" in caplog.text
@@ -348,10 +353,9 @@ def test_chunks_cover_every_beam_once_in_order_with_small_ones_last(n, size):
 
 def test_centroids_and_isf_when_the_disk_fills_while_keeping_frames(runs, tmp_path, monkeypatch, caplog):
     """Frames that cannot be kept (disk full, after part of a frame was written) are left
-    out of the scratch's record and decoded again by build-isf: the same T, a warning
+    out of the scratch's record and decoded again by build-isf: the same T, a line
     naming the file and beam, and no EXR frame ever removed."""
     import errno
-    import logging
 
     import ilt.io.frames
     from ilt.isf.build import centroids_and_isf
@@ -375,7 +379,7 @@ def test_centroids_and_isf_when_the_disk_fills_while_keeping_frames(runs, tmp_pa
 
     monkeypatch.setattr(ilt.io.frames.FrameScratch, "keep", keep)
     monkeypatch.setattr(ilt.io.frames.FrameScratch, "kept", kept)
-    with caplog.at_level(logging.WARNING, logger="ilt.spots"):
+    with caplog.at_level(logging.INFO, logger="ilt.spots"):
         centroids_and_isf(sim / "hdr", tmp_path / "spots", tmp_path / "isf", workers=1)
     assert any("No space left on device" in r.message and "beam 10" in r.message
                and "build-isf will decode it again" in r.message for r in caplog.records)

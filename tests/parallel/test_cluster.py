@@ -661,14 +661,14 @@ def test_compressed_on_a_cluster_equals_this_process(kernel_T, local_cluster):
 
 def test_compressed_on_a_cluster_from_t_in_memory_runs_here(kernel_T, local_cluster, caplog):
     """A T that is not a file the workers can map (changed in memory) is compressed in
-    this process, with a warning saying so, to the same operator."""
+    this process, with an INFO line saying so (nothing for the user to do), to the same operator."""
     import numpy as np
 
     from ilt.parallel.cluster import executor_for
     from ilt.transport.compressed import compressed_operator
 
     T, points = kernel_T
-    with executor_for(local_cluster) as ex, caplog.at_level(logging.WARNING, logger="ilt.transport.compressed"):
+    with executor_for(local_cluster) as ex, caplog.at_level(logging.INFO, logger="ilt.transport.compressed"):
         op = compressed_operator(np.array(T), points=points, leaf=32, executor=ex)
     assert "not a memory-mapped .npy file" in caplog.text
     assert np.array_equal(op.t1_unit, compressed_operator(T, points=points, leaf=32).t1_unit)
@@ -767,3 +767,15 @@ def test_a_cancelled_chunk_s_late_failure_is_not_logged_again():
         assert records == []
     finally:
         tornado.removeHandler(handler)
+
+
+def test_a_scheduler_without_workers_says_the_stages_wait(caplog):
+    """A scheduler no worker has joined yet: the stages would wait silently; the warning
+    says so and how to start one."""
+    from ilt.parallel.cluster import executor_for
+
+    with distributed.LocalCluster(n_workers=0, processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                                  silence_logs=50) as cluster:
+        with caplog.at_level(logging.WARNING, logger="ilt.parallel"), executor_for(cluster.scheduler_address) as ex:
+            assert ex is not None
+    assert "has no workers yet: the stages wait for some ('dask worker" in caplog.text

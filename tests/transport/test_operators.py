@@ -199,6 +199,21 @@ def test_negatives_warn_past_a_tenth_of_a_bounce_and_only_beyond_its_noise():
     assert "beyond the noise" in w and "bounce 2, " in w and "sigma at sample 7" in w
 
 
+def test_lost_light_and_a_beam_dark_in_its_own_cell_warn():
+    A, D, T = physical_transport(20, albedo=0.6, seed=5)
+    L = np.linalg.solve(np.eye(20) - A, np.ones(20))
+    dec = bounce_images(cancellation_operator(T), L, n_bounces=3)
+    lossy = replace(dec, residual=dec.residual * 0.5)
+    d = decomposition_diagnostics(L, lossy)
+    assert d["closure_error"] == pytest.approx(np.linalg.norm(dec.residual) * 0.5 / np.linalg.norm(L), rel=1e-9)
+    assert d["warnings"] == [f"closure error {d['closure_error']:.3g} > 1e-10: the decomposition lost light"]
+    dark = T.copy()
+    dark[4, 4] = -0.1 * T[4, 4]                    # beam 4 reads below black in its own cell
+    diagnostics = operator_diagnostics(dark, cancellation_operator(dark))
+    assert diagnostics["min_diagonal_beam"] == 4 and diagnostics["min_diagonal"] < 0
+    assert any("beam 4 does not light its own sample pixel" in w for w in diagnostics["warnings"])
+
+
 def test_noise_of_the_first_bounces_warns_past_a_fifth():
     A, D, T = physical_transport(30, albedo=0.7, seed=2)
     L = np.linalg.solve(np.eye(30) - A, np.ones(30))

@@ -130,7 +130,7 @@ def test_slow_series_warns_with_the_iterations_it_needs(caplog):
     A, t1, _ = sparse_scene("pairs")
     A[0, 1] = A[1, 0] = 0.995
     T = np.linalg.solve(np.eye(64) - A, np.diag(t1))
-    with caplog.at_level(logging.WARNING, logger="ilt.transport.series"):
+    with caplog.at_level(logging.INFO, logger="ilt.transport.series"):
         op = series_operator(T)
     assert op.jacobi_radius == pytest.approx(0.995, abs=1e-3)  # ARPACK's tolerance
     predicted = iterations_needed(op.jacobi_radius)
@@ -211,3 +211,17 @@ def test_bench_records_a_refusal():
     assert [r.solver for r in rows] == ["scipy", "dense", "series"]
     assert rows[1].refused is None and rows[1].bounce_error < 1e-12
     assert "colours" in rows[2].refused and rows[2].seconds is None
+
+
+def test_a_t_whose_inverse_leaves_its_pattern_warns_to_compare_with_dense(caplog):
+    """T = I - 0.2 K (K: the two nearest neighbours each side) is no Lambertian ISF: its
+    inverse sum (0.2 K)^n is positive off the diagonal and fills every band, so probing
+    with T's own pattern reads T1 wrong; the warning says so and what to compare with."""
+    m = 128
+    K = sum(np.diag(np.ones(m - k), k) + np.diag(np.ones(m - k), -k) for k in (1, 2))
+    with caplog.at_level(logging.WARNING, logger="ilt.transport.series"):
+        op = series_operator(np.eye(m) - 0.2 * K)
+    assert op.probe_error > 0.1
+    exact = 1 / np.diag(np.linalg.inv(np.eye(m) - 0.2 * K))
+    assert np.max(np.abs(op.t1 - exact) / exact) > 0.01       # and it is wrong
+    assert "T1 from probing may be off" in caplog.text and "compare with --solver dense" in caplog.text

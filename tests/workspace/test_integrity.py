@@ -59,6 +59,7 @@ def test_edited_rig_toml_is_moved_aside_never_overwritten(ws, built):
     assert (ws / "rig.toml.previous-1").read_text() == edited
     assert (ws / "rig.toml").read_text() == SMALL_RIG
     assert "[merge] margin" in result.stderr and "rig.toml.previous-1" in result.stderr
+    assert "edited since 'ilt run' copied it" in result.stderr
     # the copy `ilt run` made is its own: replaced without a copy aside
     other = ws.parent / "other.toml"
     other.write_text(SMALL_RIG.replace("bounces = 4", "bounces = 3"))

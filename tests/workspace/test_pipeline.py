@@ -71,6 +71,40 @@ def test_a_wrong_spot_warns_at_build_isf_and_decompose_refuses_its_t(workspace, 
     assert refused.exit_code != 0 and "diverges" in refused.stderr and not (tmp_path / "out").exists()
 
 
+def test_saturated_pixels_an_unwritable_cache_and_no_frame_sum_warn_with_what_to_do(workspace, tmp_path):
+    """Three things a user should fix, each one line: a photo's pixels clipped in every
+    exposure (its .saturated.png), an operator cache that cannot be written, a spots
+    directory without the frames' sum (so cells are not cut by the lit mask)."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    photo = tmp_path / "flashlight.exr"
+    shutil.copy(workspace / "photos" / "flashlight.exr", photo)
+    frame = cv2.imread(str(workspace / "photos" / "flashlight.saturated.png"), cv2.IMREAD_GRAYSCALE)
+    mask = np.zeros_like(frame)
+    mask[2:4, 5:8] = 255                                            # 6 pixels clipped
+    cv2.imwrite(str(tmp_path / "flashlight.saturated.png"), mask)
+    (tmp_path / "cache").write_text("a file, not a directory")
+    result = CliRunner().invoke(cli, ["decompose", "--isf", str(workspace / "isf"), str(photo), "-o",
+                                      str(tmp_path / "out"), "--solver", "dense"],
+                                env={"ILT_CACHE_DIR": str(tmp_path / "cache")})
+    assert result.exit_code == 0, result.output
+    warned = [line for line in result.stderr.splitlines() if "WARNING" in line]
+    assert len(warned) == 2, warned
+    assert "could not cache the operators in" in warned[0]
+    assert f"{photo}: 6 saturated pixels (values are lower bounds) left out" in warned[1]
+    assert "shorter exposures" in warned[1]
+    shutil.copytree(workspace / "spots", tmp_path / "spots")
+    (tmp_path / "spots" / "sum.exr").unlink()
+    built = CliRunner().invoke(cli, ["build-isf", str(workspace / "hdr"), str(tmp_path / "spots"), "-o",
+                                     str(tmp_path / "isf"), "-j", "1"])
+    assert built.exit_code == 0, built.output
+    (line,) = [line for line in built.stderr.splitlines() if "WARNING" in line]
+    assert f"{tmp_path / 'spots' / 'sum.exr'}: missing, so no lit mask" in line
+
+
 def test_second_run_skips_every_stage(workspace):
     result = run("run", "-w", str(workspace), "--json")
     assert stages_run(result) == []

@@ -273,9 +273,8 @@ def report_flags(beams, spots, names, out: Path) -> None:
     for name in FAULT_FLAGS:
         hit = [b for b, s in flagged if name in s.flags]
         if hit:
-            log.warning("%s %s flagged %s (%s): build-isf drops %s; look at %s", _beam_list(hit),
-                        "is" if len(hit) == 1 else "are", name, _FAULT_MEANS[name],
-                        "it" if len(hit) == 1 else "them", overlay)
+            log.warning("%s: spot flagged %s (%s): build-isf drops %s; look at %s", _beam_list(hit), name,
+                        _FAULT_MEANS[name], "it" if len(hit) == 1 else "them", overlay)
     shape = [b for b, s in flagged if not set(s.flags) & set(FAULT_FLAGS)]
     if len(shape) > SHAPE_WARN * len(beams):
         log.warning("%d of %d beams have flagged spots (%s): build-isf drops them; the focus, the spot size or "

@@ -209,7 +209,7 @@ def decomposition_diagnostics(photo: np.ndarray, decomposition: Decomposition, s
             worst_text = f"bounce {n}, {flat[n - 1].min() / peak:.3g} of the photo's peak at {where(i)}"
             beyond = "(the noise of T is not known: give --noise to judge them against it)"
         warnings.append(
-            f"{_bounce_range(flagged)} hold negatives {beyond}: at least {negative_energy[n - 1]:.0%} of bounce "
+            f"{_bounce_range(flagged)} {'holds' if len(flagged) == 1 else 'hold'} negatives {beyond}: at least {negative_energy[n - 1]:.0%} of bounce "
             f"{n} is wrong (worst: {worst_text}); T does not match this scene: see the report's spots and "
             "isf/lambertian.png")
     if sigma is not None:

@@ -28,8 +28,9 @@ from ilt.isf.noise import T_VAR_FILE, FrameNoise, cell_variance, read_noise
 from ilt.transport.operators import CancellationOperator, Decomposition, cancellation_operator
 from ilt.transport.scan import TransportError
 
-#: largest m whose bounces are judged against noise (dense draws; 1.1 s a draw at m = 4096)
-MAX_M = 4096
+#: largest m whose bounces are judged against noise (dense draws: 8 of them cost 1.5 s at
+#: m = 2048, 10 s at m = 4096, 6.5x the decomposition itself; benchmarks/bench_bounce_noise.py)
+MAX_M = 2048
 
 #: draws at small m, and the fewest at MAX_M (each costs a factorisation of T)
 DRAWS = 24
@@ -41,6 +42,21 @@ def draws_for(m: int) -> int:
     doubling of m, and at least :data:`MIN_DRAWS` (a sigma from 8 draws is within about
     25% of the true one, which a 5-sigma test can afford)."""
     return int(max(MIN_DRAWS, min(DRAWS, round(DRAWS * 512 / max(m, 1)))))
+
+
+#: from this m on the draws are factorised in float32: half the time, and its rounding
+#: (1e-7 times T's condition) is far below the noise it measures (predicted / true error
+#: 0.98-1.06 at m = 1024 either way: benchmarks/bench_bounce_noise.py)
+FLOAT32_M = 1024
+
+
+def _factorised(T: np.ndarray, m: int) -> CancellationOperator:
+    if m >= FLOAT32_M:
+        try:
+            return cancellation_operator(T, dtype=np.float32)
+        except TransportError:     # too ill-conditioned for float32: this draw in float64
+            pass
+    return cancellation_operator(T)
 
 
 def bounce_sigma(
@@ -70,9 +86,11 @@ def bounce_sigma(
     sums = [np.zeros_like(ref.bounces) for ref in references]
     used = 0
     for _ in range(draws):
-        drawn = np.asarray(T, dtype=np.float64) + np.asarray(T_std) * rng.standard_normal((m, m))
+        kind = np.float32 if m >= FLOAT32_M else np.float64
+        drawn = np.asarray(T, dtype=np.float64) + np.asarray(T_std) * rng.standard_normal((m, m), dtype=kind)
+        drawn = drawn if transform is None else transform(drawn)
         try:
-            op = cancellation_operator(drawn if transform is None else transform(drawn))
+            op = _factorised(drawn, m)
         except TransportError:   # a draw T cannot be inverted (noise as large as T): not counted
             continue
         used += 1

@@ -522,7 +522,8 @@ def decompose(
             for photo in todo:
                 dec, weights = decompositions[photo.name]
                 diag = decomposition_diagnostics(photo.values, dec, None if sigmas is None else sigmas[photo.name],
-                                                 where=_sample_names(isf, photo))
+                                                 where=_sample_names(isf, photo),
+                                                 unjudged=op_diag["bounce_noise"].get("reason", ""))
                 for w in diag["warnings"]:
                     log.warning("%s: %s", photo.path, w)
                 for note in diag["notes"]:

@@ -147,7 +147,7 @@ def _bounce_range(bounces: list[int]) -> str:
 
 
 def decomposition_diagnostics(photo: np.ndarray, decomposition: Decomposition, sigma: np.ndarray | None = None,
-                              where=None) -> dict:
+                              where=None, unjudged: str = "the noise of T is not known: give --noise") -> dict:
     """Closure error, bounce energies, negatives and noise of one decomposition.
 
     ``closure_error`` is ``||L - sum Ln - rN|| / ||L||`` (must be at rounding level);
@@ -160,7 +160,7 @@ def decomposition_diagnostics(photo: np.ndarray, decomposition: Decomposition, s
     :func:`ilt.decompose.noise.bounce_sigma`), or None when unknown. With it,
     ``noise_share[n]`` is bounce n+1's noise over its 2-norm and ``worst_sigma[n]`` its
     most negative sample in units of that sample's sigma. ``where(i)`` names sample i in
-    the messages (a pixel), default "sample i".
+    the messages (a pixel), default "sample i"; ``unjudged``: why sigma is None, for them.
 
     ``warnings``: one sentence per problem, for the user to act on: negatives past
     :data:`NEGATIVE_WARN` (and, with sigma, past :data:`NEGATIVE_Z` sigma), bounces 1-2
@@ -207,7 +207,7 @@ def decomposition_diagnostics(photo: np.ndarray, decomposition: Decomposition, s
             beyond = "beyond the noise"
         else:
             worst_text = f"bounce {n}, {flat[n - 1].min() / peak:.3g} of the photo's peak at {where(i)}"
-            beyond = "(the noise of T is not known: give --noise to judge them against it)"
+            beyond = f"(not judged against their noise: {unjudged})"
         warnings.append(
             f"{_bounce_range(flagged)} {'holds' if len(flagged) == 1 else 'hold'} negatives {beyond}: at least {negative_energy[n - 1]:.0%} of bounce "
             f"{n} is wrong (worst: {worst_text}); T does not match this scene: see the report's spots and "

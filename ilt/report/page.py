@@ -182,7 +182,7 @@ def write_report(workspace: Workspace, out: str | os.PathLike | None = None, for
             body += _figure("fig5.png", f"T ({isf.m} x {isf.m}), Cn T for n = 1..{FIG5_BOUNCES} and the "
                                         "indirect part T - C1 T, each in decades below its max")
             body += "<h3>Operator diagnostics</h3>" + _table(
-                {k: v for k, v in op_diag.items() if k not in ("warnings", "fingerprint")})
+                {k: v for k, v in op_diag.items() if k not in ("warnings", "fingerprint", "condition_warning")})
             body += _warnings(op_diag["warnings"])
             body += _lambertian(isf_dir, tmp)
         else:

@@ -60,7 +60,7 @@ def test_each_row_is_reached_by_a_test_that_asserts_it():
         fragment, test = row[0].strip("`"), row[-1].strip("`")
         path, name = test.split("::")
         source = (ROOT / path).read_text()
-        match = re.search(rf"^def {name}\(.*?(?=^def |^@|\Z)", source, flags=re.S | re.M)
+        match = re.search(rf"^def {name}\(.*?(?=^def |^@|\Z)", source, flags=re.DOTALL | re.MULTILINE)
         if not match:
             faults.append(f"{test}: no such test (row {fragment!r})")
         elif fragment not in match.group(0).replace("\\'", "'"):

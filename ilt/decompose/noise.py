@@ -25,7 +25,11 @@ import numpy as np
 
 from ilt.isf.directory import ISF
 from ilt.isf.noise import T_VAR_FILE, FrameNoise, cell_variance, read_noise
-from ilt.transport.operators import CancellationOperator, Decomposition, cancellation_operator
+from ilt.transport.operators import (
+    CancellationOperator,
+    Decomposition,
+    cancellation_operator,
+)
 from ilt.transport.scan import TransportError
 
 #: largest m whose bounces are judged against noise (dense draws: 8 of them cost 1.5 s at

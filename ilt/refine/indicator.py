@@ -149,13 +149,17 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
         R = (W.T @ block.T).T                                   # block @ W, W sparse
         residual2 += np.einsum("rj,rj->j", R, R)
         norm2 += np.einsum("rj,rj->j", block, block)
-    # leave out the rows of the spots of j and its neighbours
+    # leave out the rows of the spots of j and its neighbours: a difference of sums, so what
+    # is left below their rounding (a few eps of the sum over all rows) is zero, not
+    # sqrt(eps) of a residual (1.5e-7 where the rows left out held all of it)
+    floor = 64 * np.finfo(np.float64).eps * residual2
     for j, (near, w) in enumerate(zip(neighbours, weights)):
         own = np.concatenate([[j], near])
         column = np.asarray(T[own, j], dtype=np.float64)
         local = column - (np.asarray(T[np.ix_(own, near)], dtype=np.float64) @ w if near.size else 0.0)
         residual2[j] -= float(local @ local)
         norm2[j] -= float(column @ column)
+    residual2 = np.where(residual2 > floor, residual2, 0.0)
     scale = np.sqrt(np.maximum(norm2, 0.0))
     return np.where(scale > 0, np.sqrt(np.maximum(residual2, 0.0)) / np.where(scale > 0, scale, 1.0), 0.0)
 

@@ -21,11 +21,12 @@ def test_fault_flags_name_their_beams_and_the_overlay(caplog, tmp_path):
     names = {b: f"beam-{b:05d}.exr" for b in range(20)}
     with caplog.at_level(logging.INFO, logger="ilt.spots"):
         report_flags(list(range(20)), spots, names, tmp_path / "spots")
+    overlay = tmp_path / "spots" / "overlay.png"
     assert warned(caplog) == [
-        f"beam 9: spot flagged none (no spot above the noise: laser off, blocked or aimed outside the view): "
-        f"build-isf drops it; look at {tmp_path / 'spots' / 'overlay.png'}",
-        f"beams 3, 7: spot flagged multiple (a second spot: a reflection, flare or another light): build-isf drops "
-        f"them; look at {tmp_path / 'spots' / 'overlay.png'}",
+        (f"beam 9: spot flagged none (no spot above the noise: laser off, blocked or aimed outside the view): "
+         f"build-isf drops it; look at {overlay}"),
+        (f"beams 3, 7: spot flagged multiple (a second spot: a reflection, flare or another light): build-isf drops "
+         f"them; look at {overlay}"),
     ]
     infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
     assert "beam 11 (beam-00011.exr): elongated=2.1" in infos      # one spot on a fold: INFO

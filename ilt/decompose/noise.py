@@ -123,28 +123,33 @@ def entry_noise(isf: ISF, noise: float | None, source: str) -> tuple[np.ndarray 
     return None, "the noise of T is not known (no T_var.npy, no --noise, no negative entries in T)"
 
 
-def photo_noise(isf: ISF, values: np.ndarray, frame: bool) -> np.ndarray | None:
-    """Sigma of a photo's samples: the beam frames' noise model (``noise.json``) applied to
-    the photo's cell sums (a photo taken and merged like the beam frames); None for a
-    sample vector or an ISF without a noise model."""
-    if not frame:
-        return None
+def photo_model(isf: ISF) -> tuple[FrameNoise, np.ndarray] | None:
+    """The beam frames' noise model (``noise.json``) and each cell's pixel count (ones for
+    point sampling), read once for every photo of a run; None without a model."""
     try:
         record = read_noise(Path(isf.path).parent)
     except ValueError:
         return None
     if record is None:
         return None
-    model = FrameNoise(tuple(record["levels"]), tuple(record["variances"]), record["frames"], record["pixels"],
-                       record["bins"], float(record["slope"]))
+    area = (np.bincount(isf.cells[isf.cells >= 0].ravel(), minlength=isf.m)[:isf.m] if isf.cells is not None
+            else np.ones(isf.m))
+    return FrameNoise.from_record(record), area
+
+
+def photo_noise(isf: ISF, values: np.ndarray, frame: bool, model=None) -> np.ndarray | None:
+    """Sigma of a photo's samples: the beam frames' noise model applied to the photo's
+    cell sums (a photo taken and merged like the beam frames); None for a sample vector
+    or an ISF without a noise model. ``model``: :func:`photo_model`'s, when the caller has it."""
+    if not frame:
+        return None
+    model = photo_model(isf) if model is None else model
+    if model is None:
+        return None
+    noise, area = model
     level = np.maximum(np.asarray(values, dtype=np.float64), 0.0)
     shaped = level if level.ndim == 2 else level[:, None]
-    if isf.cells is not None:
-        area = np.bincount(isf.cells[isf.cells >= 0].ravel(), minlength=isf.m)[:isf.m]
-        variance = cell_variance(model, shaped, area)
-    else:
-        variance = model.pixel_variance(shaped)
-    return np.sqrt(variance).reshape(level.shape)
+    return np.sqrt(cell_variance(noise, shaped, area)).reshape(level.shape)
 
 
-__all__ = ["MAX_M", "bounce_sigma", "draws_for", "entry_noise", "photo_noise"]
+__all__ = ["MAX_M", "bounce_sigma", "draws_for", "entry_noise", "photo_model", "photo_noise"]

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ilt.decompose.fullres import full_resolution
-from ilt.decompose.noise import MAX_M, bounce_sigma, draws_for, entry_noise, photo_noise
+from ilt.decompose.noise import MAX_M, bounce_sigma, draws_for, entry_noise, photo_model, photo_noise
 from ilt.io.exr import ImageError, read_exr, write_exr
 from ilt.io.frames import FrameError, PixelMapping
 from ilt.io.manifest import (
@@ -574,7 +574,8 @@ def _bounce_noise(isf: ISF, spilled: Unmixing | None, photos: list[Photo], decom
         return None
     start = time.perf_counter()
     T = np.asarray(isf.T, dtype=np.float64)
-    stds = [photo_noise(isf, p.values, p.frame) for p in photos]
+    model = photo_model(isf)   # read once for all photos
+    stds = [photo_noise(isf, p.values, p.frame, model) if model else None for p in photos]
     try:
         sigmas = bounce_sigma(
             T, T_std, [decompositions[p.name][0] for p in photos], [p.values for p in photos],

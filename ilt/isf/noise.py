@@ -78,6 +78,12 @@ class FrameNoise:
             out[above] = v[-1] + self.slope * (signal[above] - x[-1])
         return out
 
+    @classmethod
+    def from_record(cls, data: dict) -> FrameNoise:
+        """The model of a ``noise.json`` record (:func:`read_noise`)."""
+        return cls(tuple(data["levels"]), tuple(data["variances"]), data["frames"], data["pixels"], data["bins"],
+                   float(data["slope"]))
+
     def as_dict(self) -> dict:
         return {"levels": list(self.levels), "variances": list(self.variances), "slope": self.slope,
                 "frames": self.frames, "pixels": self.pixels, "bins": self.bins}
@@ -186,8 +192,7 @@ def read_noise(directory: str | Path) -> dict | None:
     try:
         data = json.loads(path.read_text())
         float(data["entry_sigma"])
-        FrameNoise(tuple(data["levels"]), tuple(data["variances"]), data["frames"], data["pixels"], data["bins"],
-                   float(data["slope"]))
+        FrameNoise.from_record(data)
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not an ilt noise record ({exc})") from None
     return data

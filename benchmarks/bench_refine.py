@@ -1,26 +1,32 @@
 """``ilt refine`` against uniform and random scans, on a pre-rendered beam lattice (issue 21).
 
     python benchmarks/bench_refine.py [--scenes occluded,box,m] [--electrons 2e4] [--random 3]
+                                      [--lattice 2] [--added 0.5] [--oracle]
                                       [--keep DIR] [--timing-m 4096]
 
-Each scene is rendered once with a lattice twice as fine as its base scan along each
-axis (``ilt simulate SCENE --frames``: flatland 2m beams, the box (2n)^2 per face), and
-every scan below is a subset of the lattice's beam frames, run through ``ilt centroids``,
-``ilt build-isf`` and ``ilt decompose`` as a user runs them:
+Each scene is rendered once with a lattice ``--lattice`` times as fine as its base scan
+along each axis (``ilt simulate SCENE --frames``: flatland 2m beams at 2x, the box (2n)^2
+per face), and every scan below is a subset of the lattice's beam frames, run through
+``ilt centroids``, ``ilt build-isf`` and ``ilt decompose`` as a user runs them:
 
-- **base**: every other lattice beam (m beams);
-- **refine**: base plus the K = m/2 beams ``ilt refine --beams K`` asks for, each taken as
-  the nearest lattice beam not yet scanned (the rig's aim is that coarse);
-- **random**: base plus K lattice beams drawn at random (``--random`` draws; the median);
-- **uniform**: the lattice beams nearest a uniform scan of m ... 2m beams (flatland) or n^2
-  per face for n ... 2n (box).
+- **base**: the lattice thinned ``--lattice`` times (m beams);
+- **refine +K**: base plus the K beams ``ilt refine --beams K`` asks for (K = each of
+  ``--added`` x m), each taken as the nearest lattice beam not yet scanned (the rig's aim
+  is that coarse: on a 2x lattice an edge's thirds have no beam of their own, on a 4x
+  one they snap to its quarters);
+- **random +K**: base plus K lattice beams drawn at random (``--random`` draws; the median);
+- **oracle +K** (``--oracle``): the K lattice beams in the base's cells whose *true* error is
+  largest (:func:`oracle_beams`): what knowing where the base's error lies would give;
+- **uniform**: the lattice beams nearest a uniform scan of m ... the lattice (flatland at
+  2x: six counts, the in-between ones uneven; at 4x and more: every k-th beam, even), or
+  n^2 per face for n ... the lattice's (box).
 
 Errors: relative L2 of the full-resolution bounces 1-3 of every photo (room, flashlight,
 projector) against the exact ones, over the pixels the base scan covers, on the frames
 with photon and read noise (``--electrons`` photo-electrons at the brightest spot pixel,
 as benchmarks/bench_coverage.py makes them; 0: noise-free). The figure of merit is the
 mean over photos and bounces, and the **equivalent uniform beams**: the uniform beam count
-with refine's error, interpolated in log error over the uniform sweep; ratio to m + K.
+with refine's error, interpolated as a power law over the uniform sweep; ratio to m + K.
 
 ``--timing-m``: also time refine's decision (``ilt.refine.place_beams``) on a random
 m x m T with spots on a grid against build-isf's reading of the same T from disk
@@ -59,14 +65,14 @@ def run(*args):
     subprocess.run([sys.executable, "-m", "ilt", "-q", *map(str, args)], check=True)
 
 
-def lattice_parameters(scene: str, base_m: int) -> tuple[int, float, float]:
+def lattice_parameters(scene: str, base_m: int, factor: int = 2) -> tuple[int, float, float]:
     """(lattice beams, px_per_beam, spot) for a base scan of ``base_m`` beams: the base's
-    frame size and physical spot size, at twice the density along each axis."""
+    frame size and physical spot size, at ``factor`` times the density along each axis."""
     px, spot = coverage_bench.frame_parameters(scene, base_m)
     if scene == "box":
         n = round(np.sqrt(base_m / 3))
-        return 3 * (2 * n) ** 2, px / 2, min(1.0, spot * 2)
-    return 2 * base_m, px / 2, min(1.0, spot * 2)
+        return 3 * (factor * n) ** 2, px / factor, min(1.0, spot * factor)
+    return factor * base_m, px / factor, min(1.0, spot * factor)
 
 
 def lattice_spots(spots_csv: Path) -> np.ndarray:
@@ -133,15 +139,22 @@ def nearest_unused(targets: np.ndarray, spots: np.ndarray, used: set[int]) -> li
     return chosen
 
 
-def uniform_sets(scene: str, lattice_m: int, spots: np.ndarray) -> dict[int, list[int]]:
-    """Beam count -> lattice beams nearest a uniform scan of that many."""
+def uniform_sets(scene: str, lattice_m: int, factor: int = 2) -> dict[int, list[int]]:
+    """Beam count -> lattice beams nearest a uniform scan of that many. The base (the
+    smallest) is the lattice thinned ``factor`` times along each axis. Flatland with
+    ``factor`` > 2: only the even scans, every k-th beam for k = factor ... 1 (the uneven
+    in-between ones are worse than the base: their spacing halves in places)."""
     out = {}
     if scene == "box":
         big = round(np.sqrt(lattice_m / 3))
         per_face = big * big
-        for n in range(big // 2, big + 1):
+        for n in range(big // factor, big + 1):
             grid = np.round(np.linspace(0, big - 1, n)).astype(int) if n > 1 else np.array([0])
             out[3 * n * n] = sorted(f * per_face + r * big + c for f in range(3) for r in grid for c in grid)
+        return out
+    if factor > 2:
+        for k in range(factor, 0, -1):
+            out[len(range(0, lattice_m, k))] = list(range(0, lattice_m, k))
         return out
     for count in np.unique(np.round(np.linspace(lattice_m // 2, lattice_m, 6)).astype(int)):
         out[int(count)] = sorted(set(np.round(np.linspace(0, lattice_m - 2, count)).astype(int).tolist())
@@ -150,8 +163,8 @@ def uniform_sets(scene: str, lattice_m: int, spots: np.ndarray) -> dict[int, lis
 
 
 def equivalent(errors_by_m: dict[int, float], target: float) -> float:
-    """The uniform beam count whose error equals ``target`` (log-linear interpolation;
-    beyond the sweep: its end, flagged by the caller)."""
+    """The uniform beam count whose error equals ``target`` (interpolated as a power law
+    between the sweep's neighbouring scans; beyond the sweep: its end)."""
     ms = sorted(errors_by_m)
     es = [errors_by_m[m] for m in ms]
     if target >= es[0]:
@@ -159,12 +172,40 @@ def equivalent(errors_by_m: dict[int, float], target: float) -> float:
     for (m0, e0), (m1, e1) in zip(zip(ms, es), zip(ms[1:], es[1:])):
         if e1 <= target <= e0:
             t = (np.log(e0) - np.log(target)) / max(np.log(e0) - np.log(e1), 1e-300)
-            return float(m0 + t * (m1 - m0))
+            return float(m0 * (m1 / m0) ** t)
     return float(ms[-1])
 
 
-def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: int, rng) -> None:
-    lattice_m, px, spot = lattice_parameters(scene, base_m)
+def oracle_beams(case: Path, base: Path, mask: np.ndarray, spots: np.ndarray, unused: list[int], k: int) -> list[int]:
+    """The ``k`` unused lattice beams an oracle that knows the base scan's true errors picks:
+    each scored by the error energy (bounces 1-3 of every photo, each relative to its truth)
+    of the base cell its spot falls in, shared among the cell's candidates. Not a method: the
+    ceiling of what any indicator of where the base's error lies could give on this lattice."""
+    from ilt.io.exr import read_exr
+
+    cells = read_exr(base / "isf" / "cells.exr")[0][..., 0].astype(np.int64)
+    m = int(cells.max()) + 1
+    inside = cells >= 0
+    energy = np.zeros(m)
+    for photo in PHOTOS:
+        truth = np.load(case / "truth" / "photos" / f"{photo}-bounces.npy").astype(np.float64)
+        for n in range(3):
+            est = read_exr(base / "dec" / photo / f"bounce-{n + 1}.exr")[0][..., 0].astype(np.float64)
+            e2 = np.where(mask, (est - truth[n]) ** 2, 0.0) / float((truth[n][mask] ** 2).sum())
+            energy += np.bincount(cells[inside], weights=e2[inside], minlength=m)
+    px = np.floor(spots[unused] + 0.5).astype(np.int64)
+    height, width = cells.shape
+    ok = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < width) & (px[:, 1] < height)
+    cell = np.full(len(unused), -1)
+    cell[ok] = cells[px[ok, 1], px[ok, 0]]
+    count = np.bincount(cell[cell >= 0], minlength=m)
+    score = np.where(cell >= 0, energy[np.maximum(cell, 0)] / np.maximum(count[np.maximum(cell, 0)], 1), 0.0)
+    return [unused[i] for i in np.argsort(-score, kind="stable")[:k]]
+
+
+def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: int, rng, factor: int = 2,
+                added: tuple[float, ...] = (0.5,), oracle: bool = False) -> None:
+    lattice_m, px, spot = lattice_parameters(scene, base_m, factor)
     case = root / f"{scene}-{lattice_m}"
     if not (case / "hdr").exists():
         run("simulate", scene, "--frames", "--beams", lattice_m, "--px-per-beam", px, "--spot", spot, "-o", case,
@@ -179,31 +220,39 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
         run("centroids", hdr, "-o", case / "lattice-spots")
     spots = lattice_spots(case / "lattice-spots" / "spots.csv")
     lattice_m = len(spots)   # the beams that hit a visible surface
-    uniform = uniform_sets(scene, lattice_m, spots)
+    uniform = uniform_sets(scene, lattice_m, factor)
     base_beams = uniform[min(uniform)]
     base = scan(case, hdr, f"uniform-{len(base_beams)}", base_beams)
     mask = covered(base)
-    k = len(base_beams) // 2
     results = {}
     for count, beams in uniform.items():
         results[f"uniform {count}"] = (count, errors(case, scan(case, hdr, f"uniform-{count}", beams), mask))
-    started = time.perf_counter()
-    run("refine", base / "isf", "-o", base / "refine", "--beams", k, "--force")
-    refine_seconds = time.perf_counter() - started
-    targets = np.loadtxt(base / "refine" / "refine.csv", delimiter=",", skiprows=1, ndmin=2)[:, :2]
-    added = nearest_unused(targets, spots, set(base_beams))
-    results["refine"] = (len(base_beams) + len(added),
-                         errors(case, scan(case, hdr, f"refine-{k}", base_beams + added), mask))
     unused = sorted(set(range(lattice_m)) - set(base_beams))
-    draws_err = []
-    for d in range(draws):
-        extra = rng.choice(unused, size=k, replace=False).tolist()
-        draws_err.append(errors(case, scan(case, hdr, f"random-{k}-{d}", base_beams + extra), mask))
-    results["random (median)"] = (len(base_beams) + k, np.median(draws_err, axis=0))
+    seconds = {}
+    for share in added:
+        k = round(share * len(base_beams))
+        k -= k % 2                                   # refine places pairs
+        started = time.perf_counter()
+        run("refine", base / "isf", "-o", base / f"refine-{k}", "--beams", k, "--force")
+        seconds[k] = time.perf_counter() - started
+        targets = np.loadtxt(base / f"refine-{k}" / "refine.csv", delimiter=",", skiprows=1, ndmin=2)[:, :2]
+        chosen = nearest_unused(targets, spots, set(base_beams))
+        results[f"refine +{k}"] = (len(base_beams) + len(chosen),
+                                   errors(case, scan(case, hdr, f"refine-{k}", base_beams + chosen), mask))
+        draws_err = []
+        for d in range(draws):
+            extra = rng.choice(unused, size=k, replace=False).tolist()
+            draws_err.append(errors(case, scan(case, hdr, f"random-{k}-{d}", base_beams + extra), mask))
+        if draws_err:
+            results[f"random +{k} (median of {draws})"] = (len(base_beams) + k, np.median(draws_err, axis=0))
+        if oracle:
+            chosen = oracle_beams(case, base, mask, spots, unused, k)
+            results[f"oracle +{k} (true errors)"] = (len(base_beams) + k, errors(
+                case, scan(case, hdr, f"oracle-{k}", base_beams + chosen), mask))
     uniform_mean = {c: float(e.mean()) for c, e in (results[f"uniform {c}"] for c in uniform)}
     noise = f"{electrons:g} e-" if electrons > 0 else "noise-free"
-    print(f"\n### {scene}, base m = {len(base_beams)}, K = {k}, lattice {lattice_m}, {noise}; "
-          f"refine decided in {refine_seconds:.2f} s (the command)\n")
+    print(f"\n### {scene}, base m = {len(base_beams)}, lattice {lattice_m} ({factor}x), {noise}; refine decided in "
+          + ", ".join(f"{v:.2f} s (+{k})" for k, v in seconds.items()) + " (the command)\n")
     print("| scan | beams | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
           + " | mean | equivalent uniform beams |")
     print("|---|---|" + "---|" * (3 * len(PHOTOS)) + "---|---|")
@@ -248,6 +297,9 @@ def main():
     ap.add_argument("--random", type=int, default=3, help="random draws")
     ap.add_argument("--keep", type=Path, default=None)
     ap.add_argument("--timing-m", type=int, default=0)
+    ap.add_argument("--lattice", type=int, default=2, help="the lattice's density over the base's, per axis")
+    ap.add_argument("--added", default="0.5", help="refine's new beams as shares of the base's, comma-separated")
+    ap.add_argument("--oracle", action="store_true", help="also the beams a true-error oracle picks")
     args = ap.parse_args()
     root = args.keep or Path(tempfile.mkdtemp(prefix="ilt-refine-"))
     root.mkdir(parents=True, exist_ok=True)
@@ -255,7 +307,8 @@ def main():
     rng = np.random.default_rng(0)
     try:
         for scene in filter(None, args.scenes.split(",")):    # --scenes '': the timing only
-            bench_scene(root, scene, base[scene], args.electrons, args.random, rng)
+            bench_scene(root, scene, base[scene], args.electrons, args.random, rng, args.lattice,
+                        tuple(float(a) for a in args.added.split(",")), args.oracle)
         if args.timing_m:
             bench_timing(args.timing_m, root)
     finally:

@@ -1,7 +1,7 @@
 """``ilt refine`` against uniform and random scans, on a pre-rendered beam lattice (issue 21).
 
     python benchmarks/bench_refine.py [--scenes occluded,box,m] [--electrons 2e4] [--random 3]
-                                      [--lattice 2] [--added 0.5] [--oracle]
+                                      [--lattice 2] [--added 0.5] [--oracle] [--error-map PNG]
                                       [--keep DIR] [--timing-m 4096]
 
 Each scene is rendered once with a lattice ``--lattice`` times as fine as its base scan
@@ -203,8 +203,33 @@ def oracle_beams(case: Path, base: Path, mask: np.ndarray, spots: np.ndarray, un
     return [unused[i] for i in np.argsort(-score, kind="stable")[:k]]
 
 
+def error_map(case: Path, scans: list[tuple[str, Path]], mask: np.ndarray, out: Path, photo: str = "room",
+              bounce: int = 2) -> None:
+    """``out``: side by side, each scan's signed error of ``photo``'s bounce over ``mask``
+    (blue below the truth, red above; +-25% of the truth's peak at the ends), its spots black."""
+    import cv2
+
+    from ilt.io.exr import read_exr
+
+    truth = np.load(case / "truth" / "photos" / f"{photo}-bounces.npy")[bounce - 1].astype(np.float64)
+    peak = float(np.abs(truth[mask]).max())
+    scale = max(1, int(np.ceil(240 / truth.shape[0])))
+    tiles = []
+    for name, where in scans:
+        est = read_exr(where / "dec" / photo / f"bounce-{bounce}.exr")[0][..., 0].astype(np.float64)
+        signed = np.clip(0.5 + 2.0 * np.where(mask, est - truth, 0.0) / peak, 0.0, 1.0)
+        tile = cv2.applyColorMap(np.uint8(signed * 255), cv2.COLORMAP_JET)
+        tile[~mask] = 255
+        tile = cv2.resize(tile, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+        for x, y in np.loadtxt(where / "isf" / "samples.csv", delimiter=",", skiprows=1, ndmin=2)[:, 1:3]:
+            cv2.circle(tile, (round((x + 0.5) * scale), round((y + 0.5) * scale)), max(1, scale // 2), (0, 0, 0), -1)
+        cv2.putText(tile, name, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
+        tiles.append(tile)
+    cv2.imwrite(str(out), np.hstack(tiles))
+
+
 def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: int, rng, factor: int = 2,
-                added: tuple[float, ...] = (0.5,), oracle: bool = False) -> None:
+                added: tuple[float, ...] = (0.5,), oracle: bool = False, map_png: Path | None = None) -> None:
     lattice_m, px, spot = lattice_parameters(scene, base_m, factor)
     case = root / f"{scene}-{lattice_m}"
     if not (case / "hdr").exists():
@@ -250,6 +275,13 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
             results[f"oracle +{k} (true errors)"] = (len(base_beams) + k, errors(
                 case, scan(case, hdr, f"oracle-{k}", base_beams + chosen), mask))
     uniform_mean = {c: float(e.mean()) for c, e in (results[f"uniform {c}"] for c in uniform)}
+    if map_png is not None:
+        k = max(int(n.split("+")[1]) for n in results if n.startswith("refine +"))
+        same = min((c for c in uniform if c >= len(base_beams) + k), default=max(uniform))
+        scans_dir = case / f"scans-{hdr.name}"
+        error_map(case, [(f"base {len(base_beams)}", base), (f"refine {len(base_beams)} + {k}", scans_dir / f"refine-{k}"),
+                         (f"uniform {same}", scans_dir / f"uniform-{same}")], mask,
+                  map_png.with_name(f"{map_png.stem}-{scene}{map_png.suffix}"))
     noise = f"{electrons:g} e-" if electrons > 0 else "noise-free"
     print(f"\n### {scene}, base m = {len(base_beams)}, lattice {lattice_m} ({factor}x), {noise}; refine decided in "
           + ", ".join(f"{v:.2f} s (+{k})" for k, v in seconds.items()) + " (the command)\n")
@@ -300,6 +332,8 @@ def main():
     ap.add_argument("--lattice", type=int, default=2, help="the lattice's density over the base's, per axis")
     ap.add_argument("--added", default="0.5", help="refine's new beams as shares of the base's, comma-separated")
     ap.add_argument("--oracle", action="store_true", help="also the beams a true-error oracle picks")
+    ap.add_argument("--error-map", type=Path, default=None,
+                    help="PNG: the room photo's bounce-2 error of the base, refine and uniform scans (-SCENE added)")
     args = ap.parse_args()
     root = args.keep or Path(tempfile.mkdtemp(prefix="ilt-refine-"))
     root.mkdir(parents=True, exist_ok=True)
@@ -308,7 +342,7 @@ def main():
     try:
         for scene in filter(None, args.scenes.split(",")):    # --scenes '': the timing only
             bench_scene(root, scene, base[scene], args.electrons, args.random, rng, args.lattice,
-                        tuple(float(a) for a in args.added.split(",")), args.oracle)
+                        tuple(float(a) for a in args.added.split(",")), args.oracle, args.error_map)
         if args.timing_m:
             bench_timing(args.timing_m, root)
     finally:

@@ -109,15 +109,25 @@ def scan(case: Path, hdr: Path, name: str, beams: list[int]) -> Path:
     return where
 
 
-def errors(case: Path, where: Path, mask: np.ndarray) -> np.ndarray:
-    """(photos, 3) relative L2 errors of bounces 1-3 over ``mask``."""
+def truth_bounces(case: Path, photo: str) -> np.ndarray:
+    """(N, H, W) float64: the renderer's exact bounces of ``photo``."""
+    return np.load(case / "truth" / "photos" / f"{photo}-bounces.npy").astype(np.float64)
+
+
+def bounce_image(where: Path, photo: str, n: int) -> np.ndarray:
+    """(H, W) float64: the scan's full-resolution bounce ``n`` of ``photo``."""
     from ilt.io.exr import read_exr
 
+    return read_exr(where / "dec" / photo / f"bounce-{n}.exr")[0][..., 0].astype(np.float64)
+
+
+def errors(case: Path, where: Path, mask: np.ndarray) -> np.ndarray:
+    """(photos, 3) relative L2 errors of bounces 1-3 over ``mask``."""
     out = np.empty((len(PHOTOS), 3))
     for p, photo in enumerate(PHOTOS):
-        truth = np.load(case / "truth" / "photos" / f"{photo}-bounces.npy").astype(np.float64)
+        truth = truth_bounces(case, photo)
         for n in range(3):
-            est = read_exr(where / "dec" / photo / f"bounce-{n + 1}.exr")[0][..., 0].astype(np.float64)
+            est = bounce_image(where, photo, n + 1)
             out[p, n] = np.linalg.norm((est - truth[n])[mask]) / np.linalg.norm(truth[n][mask])
     return out
 
@@ -188,9 +198,9 @@ def oracle_beams(case: Path, base: Path, mask: np.ndarray, spots: np.ndarray, un
     inside = cells >= 0
     energy = np.zeros(m)
     for photo in PHOTOS:
-        truth = np.load(case / "truth" / "photos" / f"{photo}-bounces.npy").astype(np.float64)
+        truth = truth_bounces(case, photo)
         for n in range(3):
-            est = read_exr(base / "dec" / photo / f"bounce-{n + 1}.exr")[0][..., 0].astype(np.float64)
+            est = bounce_image(base, photo, n + 1)
             e2 = np.where(mask, (est - truth[n]) ** 2, 0.0) / float((truth[n][mask] ** 2).sum())
             energy += np.bincount(cells[inside], weights=e2[inside], minlength=m)
     px = np.floor(spots[unused] + 0.5).astype(np.int64)
@@ -209,14 +219,12 @@ def error_map(case: Path, scans: list[tuple[str, Path]], mask: np.ndarray, out: 
     (blue below the truth, red above; +-25% of the truth's peak at the ends), its spots black."""
     import cv2
 
-    from ilt.io.exr import read_exr
-
-    truth = np.load(case / "truth" / "photos" / f"{photo}-bounces.npy")[bounce - 1].astype(np.float64)
+    truth = truth_bounces(case, photo)[bounce - 1]
     peak = float(np.abs(truth[mask]).max())
     scale = max(1, int(np.ceil(240 / truth.shape[0])))
     tiles = []
     for name, where in scans:
-        est = read_exr(where / "dec" / photo / f"bounce-{bounce}.exr")[0][..., 0].astype(np.float64)
+        est = bounce_image(where, photo, bounce)
         signed = np.clip(0.5 + 2.0 * np.where(mask, est - truth, 0.0) / peak, 0.0, 1.0)
         tile = cv2.applyColorMap(np.uint8(signed * 255), cv2.COLORMAP_JET)
         tile[~mask] = 255

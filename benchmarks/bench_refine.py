@@ -95,15 +95,15 @@ def subset(lattice_hdr: Path, beams: list[int], out: Path) -> Path:
     return out
 
 
-def scan(case: Path, hdr: Path, name: str, beams: list[int]) -> Path:
-    """centroids, build-isf and decompose of the subset; the scan's directory."""
+def scan(case: Path, hdr: Path, name: str, beams: list[int], build_args=()) -> Path:
+    """centroids, build-isf (with ``build_args``) and decompose of the subset; the scan's directory."""
     where = case / f"scans-{hdr.name}" / name
     if (where / "dec").exists():
         return where
     shutil.rmtree(where, ignore_errors=True)
     frames = subset(hdr, beams, where / "hdr")
     run("centroids", frames, "-o", where / "spots")
-    run("build-isf", frames, where / "spots", "-o", where / "isf")
+    run("build-isf", frames, where / "spots", "-o", where / "isf", *build_args)
     run("decompose", "--isf", where / "isf", *[case / "photos" / f"{p}.exr" for p in PHOTOS], "-o", where / "dec",
         "--no-cache")
     return where

@@ -77,7 +77,8 @@ def nested_sets(scene: str, m: int) -> dict[int, list[int]]:
     return out
 
 
-def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None = None) -> dict:
+def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None = None,
+          keep_covered: bool = False) -> dict:
     m, px, spot = lattice(scene)
     if spot_px is not None:   # the laser's spot, whatever the scan: sigma in full-resolution pixels
         spot = spot_px / px
@@ -90,8 +91,15 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
         if not (case / "hdr-noisy").exists():
             coverage_bench.noisy_copy(hdr, case / "hdr-noisy", electrons / coverage_bench.peak_of(hdr), rng)
         hdr = case / "hdr-noisy"
-    sets = nested_sets(scene, m)
-    where = {count: refine_bench.scan(case, hdr, f"sweep-{count}", beams) for count, beams in sorted(sets.items())}
+    where, earlier = {}, None
+    for count, beams in sorted(nested_sets(scene, m).items()):
+        # --keep-covered: each scan built with the sparser scan's coverage (ilt build-isf --keep-covered)
+        if keep_covered and earlier is not None:
+            where[count] = refine_bench.scan(case, hdr, f"sweep-{count}-kept", beams,
+                                             ("--keep-covered", earlier / "isf"))
+        else:
+            where[count] = refine_bench.scan(case, hdr, f"sweep-{count}", beams)
+        earlier = where[count]
     mask = refine_bench.covered(where[min(where)])
     rows = {}
     for count, w in where.items():
@@ -101,6 +109,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
                        "frame_coverage": float(manifest["coverage"]["fraction"]),
                        "m_kept": int(manifest["m"])}
     return {"scene": scene, "lattice": m, "px_per_beam": px, "spot": spot, "electrons": electrons,
+            "keep_covered": keep_covered,
             "base_pixels": int(mask.sum()), "scans": rows}
 
 
@@ -120,8 +129,9 @@ def rises(result: dict) -> list[str]:
 
 
 def table(result: dict, per_beam: float) -> str:
+    kept = ", each built keeping the sparser scan's coverage" if result.get("keep_covered") else ""
     lines = [(f"### {result['scene']}: lattice {result['lattice']} ({result['px_per_beam']:g} px per beam), "
-              f"{result['electrons']:g} e-, over the {result['base_pixels']} pixels of the sparsest scan"), "",
+              f"{result['electrons']:g} e-{kept}, over the {result['base_pixels']} pixels of the sparsest scan"), "",
              ("| m | m kept | rig hours | covered | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
               + " | mean |"), "|---|---|---|---|" + "---|" * 10]
     for count, row in sorted(result["scans"].items()):
@@ -169,6 +179,9 @@ def main() -> None:
                     help="the laser spot's sigma in full-resolution pixels (default: 0.6 px flatland, 0.8 px "
                          "the box: no flank reaches the next cell even at the lattice; 2.4 puts the lattice "
                          "3.3 sigmas apart, where each spot lights its neighbours' cells)")
+    ap.add_argument("--keep-covered", action="store_true",
+                    help="build each scan with 'ilt build-isf --keep-covered' the next sparser scan's ISF (a lab "
+                         "that rescans denser, or ilt run's refine passes)")
     ap.add_argument("--scratch", type=Path, help="renders and scans (kept: a rerun reuses them)")
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--json", type=Path)
@@ -185,7 +198,8 @@ def main() -> None:
     rng = np.random.default_rng(0)
     results = []
     for scene in filter(None, args.scenes.split(",")):
-        results.append(sweep(args.scratch / f"e{args.electrons:g}", scene, args.electrons, rng, args.spot_px))
+        results.append(sweep(args.scratch / f"e{args.electrons:g}", scene, args.electrons, rng, args.spot_px,
+                             args.keep_covered))
         print("\n" + table(results[-1], per_beam), flush=True)
     if args.plot:
         plot(results, per_beam, args.plot)

@@ -39,13 +39,18 @@ from ilt.workspace.options import BUILD_ISF
                    "fitted in the same pass (0: flat cells; 2 stores 5 m^2 float32 against 2 m^2 for 1).")
 @stage_option(BUILD_ISF["no_fine"], help="Do not build fine/: 'ilt decompose' then splits photos at the "
                                         "m samples only.")
+@click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",
+              help="An earlier build of the same scene and camera (its ISF directory, or its cells.exr): every "
+                   "pixel its cells covered stays covered, so that a denser rescan covers at least what it "
+                   "did. (A scan's lit test judges the faint rim of its light against its own noise; 'ilt run' "
+                   "passes this between refine passes by itself.)")
 @workers_option
 @cluster_options
 @workspace_option
 @force_option
 @json_option
 def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, max_cell_radius, fine_degree,
-            no_fine, workers, cluster, workspace, force, as_json):
+            no_fine, keep_covered, workers, cluster, workspace, force, as_json):
     """Build the ISF directory (-o, default WORKSPACE/isf) from the beam frames in HDR_DIR
     and the spots in SPOTS_DIR (from 'ilt centroids').
 
@@ -72,6 +77,6 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
         summary = build_isf(hdr_dir, spots_dir, output, sampling=sampling, min_separation=min_separation,
                             lit_fraction=lit_fraction, max_cell_radius=max_cell_radius, executor=executor,
                             workers=workers,
-                            fine_degree=None if no_fine else fine_degree,
+                            fine_degree=None if no_fine else fine_degree, keep_covered=keep_covered,
                             progress=update, force=force)
     emit(as_json, summary, [summary["output"]])

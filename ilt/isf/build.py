@@ -169,6 +169,38 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     return lit, {"relative_threshold": relative, "noise_sigma": noise, "noise_threshold": sigmas * noise}
 
 
+def earlier_coverage(source: str | os.PathLike, frame_shape: tuple[int, int], mapping) -> tuple[np.ndarray, Path]:
+    """(H, W) bool: the pixels an earlier build's cells covered, and the ``cells.exr`` read.
+
+    ``source``: that build's ISF directory, a directory holding its ``cells.exr`` (a refine
+    pass keeps one: :mod:`ilt.refine.stage`), or the file. It must be on this build's frame
+    grid (the same shape and pixel mapping: the same camera and merge), else BuildError
+    naming it. A scan's lit test judges each pixel against that scan's own noise, so at
+    the faint rim of the light a denser scan can leave out pixels a sparser one let in
+    (docs/fullres.md: 0.1-0.5% of them); where the earlier scan is known, they stay.
+    """
+    from ilt.io.exr import ImageError, read_exr
+
+    path = Path(source)
+    if path.is_dir():
+        path = path / CELLS_FILE
+    if not path.is_file():
+        raise BuildError(f"{path}: no such file; --keep-covered takes an earlier ISF directory (or its {CELLS_FILE})")
+    try:
+        pixels, attributes = read_exr(path)
+    except ImageError as exc:
+        raise BuildError(str(exc)) from None
+    if pixels.shape[:2] != tuple(frame_shape):
+        raise BuildError(f"{path}: its cells are {pixels.shape[1]} x {pixels.shape[0]}, this scan's frames "
+                         f"{frame_shape[1]} x {frame_shape[0]}: not a build of the same camera and merge")
+    ours = mapping.attributes()
+    theirs = [attributes.get(k) for k in ours]
+    if any(t is None or not np.allclose(t, v) for t, v in zip(theirs, ours.values())):
+        raise BuildError(f"{path}: its pixel mapping {theirs} is not this scan's {list(ours.values())}: not a "
+                         f"build of the same camera and merge")
+    return pixels[:, :, 0] >= 0, path
+
+
 def _peak_test(peak: np.ndarray, rows, cols, fraction: float, sigmas: float, noise: float, beams: int) -> np.ndarray:
     """Pixels that one beam frame lights: where the largest of the frames' local means
     (``peak.exr``) passes the sum's two tests, with the noise of one frame's mean
@@ -268,7 +300,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
               sampling: str = "cell", min_separation: float = 2.0, lit_fraction: float = 1e-3,
               max_cell_radius: float | None = None, executor=None, workers: int | None = None,
               chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
-              fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True, lambertian: bool = True) -> dict:
+              fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True, lambertian: bool = True,
+              keep_covered: str | os.PathLike | None = None) -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
@@ -289,9 +322,19 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     spot's direct light in the other cells (:mod:`ilt.isf.spill`), measured in the same pass.
     ``lambertian``: also write ``lambertian.json`` and ``lambertian.png``, the reciprocity
     verdict on T (:mod:`ilt.isf.lambertian`); False only to time build-isf without it.
+    ``keep_covered``: an earlier build of the same scene (its ISF directory, a directory
+    holding its ``cells.exr``, or that file): every pixel its cells covered stays covered
+    (:func:`earlier_coverage`), so that a denser scan covers at least what it did.
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
+    if keep_covered is not None:
+        if sampling != "cell":
+            raise BuildError("keeping an earlier scan's coverage (--keep-covered) needs cell sampling: "
+                             "point sampling has no cells")
+        if Path(keep_covered).resolve().is_relative_to(Path(out).resolve()):
+            raise BuildError(f"{keep_covered}: this build replaces it; --keep-covered takes an earlier build "
+                             f"kept elsewhere (copy its {CELLS_FILE} out first)")
     spots_dir = Path(spots_dir)
     hdr = open_hdr_directory(hdr_dir)
     beams, spots = read_spots(spots_dir / SPOTS_FILE)
@@ -325,6 +368,16 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         lit, lit_info = (None, None) if frame_sum is None else lit_mask(frame_sum, on_grid, lit_fraction,
                                                                         dark_noise=dark, frame_peak=peak,
                                                                         beams=hdr.m)
+        if keep_covered is not None:
+            if lit is None:
+                raise BuildError(f"{spots_dir / SUM_FILE}: missing, and keeping an earlier scan's coverage needs "
+                                 f"this scan's lit mask from it: run 'ilt centroids' again")
+            earlier, earlier_cells = earlier_coverage(keep_covered, hdr.frame_shape, hdr.mapping)
+            added = int(np.count_nonzero(earlier & ~lit))
+            lit = lit | earlier
+            lit_info["kept_from"] = {"cells": str(earlier_cells), "pixels": int(earlier.sum()), "added": added}
+            log.info("kept %d pixels that %s covered and this scan's lit test leaves out (its noise at the rim "
+                     "of the light)", added, earlier_cells)
         # cells end where the scan's light ends (the lit mask), not at a multiple of the
         # spot spacing: a denser scan covers at least what a sparser one did (issue 21).
         # Without the frames' sum there is no lit mask: then 2 spot spacings, as before
@@ -453,6 +506,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             inputs = {str(spots_dir / SPOTS_FILE): spots_manifest["outputs"].get(SPOTS_FILE, ""),
                       str(spots_dir / MANIFEST): fingerprint_file(spots_dir / MANIFEST),
                       **spots_manifest.get("inputs", {})}
+        if keep_covered is not None:
+            parameters["keep_covered"] = lit_info["kept_from"]["cells"]
+            inputs[lit_info["kept_from"]["cells"]] = fingerprint_file(lit_info["kept_from"]["cells"])
         write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields}, hashed=hashed)
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
 

@@ -4,7 +4,9 @@ Writes ``OUT/refine.csv`` (``x,y`` full-resolution sensor pixels where each new 
 should land, ``pan,tilt`` in the plan's units when the capture is known, ``gain`` the
 indicator's share it removes; best first), ``OUT/refine.json`` (the indicator before and
 after, the counts), ``OUT/refine.png`` (the cells shaded by their beams' prediction residual,
-the spots and the targets) and the manifest. Works on an ISF built from bare beam
+the spots and the targets), a copy of the ISF's ``cells.exr`` (the coverage a build with the
+new beams keeps: ``ilt build-isf --keep-covered``, which ``ilt run``'s passes give it) and
+the manifest. Works on an ISF built from bare beam
 frames: without a capture there are no angles, only pixels.
 """
 
@@ -13,6 +15,7 @@ from __future__ import annotations
 import csv
 import logging
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +29,7 @@ from ilt.io.manifest import (
     write_manifest,
 )
 from ilt.io.staged import staged_directory
-from ilt.isf.directory import SAMPLES_FILE, T_FILE, ISFError, load_isf
+from ilt.isf.directory import CELLS_FILE, SAMPLES_FILE, T_FILE, ISFError, load_isf
 
 from .indicator import Placement, RefineError, place_beams
 from .pointing import aim, check_reach
@@ -74,6 +77,8 @@ def refine(isf_dir: str | os.PathLike, out: str | os.PathLike, beams: int, captu
         write_json(tmp / JSON_FILE, {**summary, "residual_median": float(np.median(placement.residual)),
                                      "residual_max": float(placement.residual.max())})
         _write_png(tmp / PNG_FILE, isf, placement)
+        if (isf_dir / CELLS_FILE).is_file():
+            shutil.copyfile(isf_dir / CELLS_FILE, tmp / CELLS_FILE)
         inputs = _input_hashes(isf_dir, (T_FILE, SAMPLES_FILE))
         if capture is not None:
             inputs[str(Path(capture) / MANIFEST)] = fingerprint_file(Path(capture) / MANIFEST)

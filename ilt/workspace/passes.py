@@ -131,6 +131,18 @@ def read_pass(directory: Path, number: int) -> Pass:
     return Pass(number, directory, angles, pixels, fingerprint_file(path))
 
 
+def kept_coverage(passes: list[Pass]) -> Path | None:
+    """The cells of the ISF the latest refine pass read (its copy of ``cells.exr``), which
+    the build with its beams keeps covered (``ilt build-isf --keep-covered``): a scan grown
+    by passes never covers less than before. None before the first pass."""
+    from ilt.isf.directory import CELLS_FILE
+
+    for p in reversed(passes):
+        if (p.directory / CELLS_FILE).is_file():
+            return p.directory / CELLS_FILE
+    return None
+
+
 def passes_parameter(passes: list[Pass]) -> list[dict]:
     """What a capture extended by ``passes`` depends on (its run record's ``passes``)."""
     return [{"beams": p.beams, "refine": p.fingerprint} for p in passes]

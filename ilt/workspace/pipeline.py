@@ -71,6 +71,7 @@ from ilt.workspace.passes import (
     RefineConfig,
     completed_passes,
     finished,
+    kept_coverage,
     parse_refine,
     passes_parameter,
     run_refine_pass,
@@ -300,12 +301,16 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
             run_centroids(d["merge"], d["centroids"], SpotParameters(**spot_params), executor=executor,
                           workers=c["workers"], force=True, frame_cache=scratch, progress=update)
 
+    # a scan grown by refine passes keeps what its earlier builds covered
+    covered = kept_coverage(passes) if isf_params.get("sampling", "cell") == "cell" else None
+    isf_inputs = {"hdr": d["merge"], "spots": d["centroids"], **({"covered": covered} if covered else {})}
+
     def make_build_isf():
         try:
             with progress(beams, "build-isf") as update:
                 build_isf(d["merge"], d["centroids"], d["build-isf"], executor=executor, workers=b["workers"],
                           force=True, frame_cache=scratch if scratch.is_dir() else None, progress=update,
-                          **isf_params)
+                          keep_covered=covered, **isf_params)
         finally:
             _remove_scratch(ws)
 
@@ -326,8 +331,7 @@ def plan_stages(ws: Workspace, cfg: RunConfig, progress=no_progress, executor=No
         Stage("capture", d["capture"], capture_parameters(cfg.rig, passes), {}),
         Stage("merge", d["merge"], fingerprinted(m), {"capture": d["capture"]}, make_merge),
         Stage("centroids", d["centroids"], fingerprinted(c), {"hdr": d["merge"]}, make_centroids),
-        Stage("build-isf", d["build-isf"], fingerprinted(b), {"hdr": d["merge"], "spots": d["centroids"]},
-              make_build_isf),
+        Stage("build-isf", d["build-isf"], fingerprinted(b), isf_inputs, make_build_isf),
     ]
     if cfg.photo_kinds:
         stages.append(Stage("photos", d["photos"], {"sim": list(cfg.photo_kinds), **capture_parameters(cfg.rig),

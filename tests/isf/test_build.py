@@ -454,3 +454,60 @@ def test_a_matte_scene_is_judged_lambertian_from_its_cells_and_points(runs):
         assert verdict["pairs"] >= 100 and verdict["beams"] == 32
         assert (root / sampling / "lambertian.png").exists()
         assert json.loads((root / sampling / "manifest.json").read_text())["lambertian"]["verdict"] == "lambertian"
+
+
+def test_a_rebuild_keeps_what_an_earlier_build_covered(runs, tmp_path):
+    """``--keep-covered``: a pixel an earlier build's cells covered stays covered, in the cell
+    of its nearest spot, whatever this build's lit test says; the earlier cells are an input
+    of the manifest. (The lit test is cut here by a 50x higher --lit-fraction, which leaves out
+    the faint rim as noise does a denser scan's: docs/fullres.md.)"""
+    root, sim = runs[32]
+    rows = (root / "spots" / "spots.csv").read_text().splitlines()
+    sparse = tmp_path / "sparse-spots"
+    shutil.copytree(root / "spots", sparse)
+    (sparse / "spots.csv").write_text("\n".join(rows[:1] + rows[1::2]) + "\n")
+    build_isf(sim / "hdr", sparse, tmp_path / "sparse", workers=1, fine_degree=None)
+    earlier = load_isf(tmp_path / "sparse").cells >= 0
+    run("build-isf", sim / "hdr", root / "spots", "-o", tmp_path / "cut", "--lit-fraction", 0.05, "--workers", 1,
+        "--no-fine")
+    cut = load_isf(tmp_path / "cut").cells
+    assert (earlier & (cut < 0)).sum() > 100        # the cut lit test loses part of the earlier coverage
+    run("build-isf", sim / "hdr", root / "spots", "-o", tmp_path / "kept", "--lit-fraction", 0.05, "--workers", 1,
+        "--no-fine", "--keep-covered", tmp_path / "sparse")
+    isf = load_isf(tmp_path / "kept")
+    assert ((isf.cells >= 0) == (earlier | (cut >= 0))).all()
+    # each pixel in the cell of its nearest spot: the Voronoi labels of the union
+    expected = voronoi_cells(isf.mapping.to_grid(isf.samples), isf.cells.shape, earlier | (cut >= 0))
+    assert (isf.cells == expected).all()
+    manifest = json.loads((tmp_path / "kept" / "manifest.json").read_text())
+    cells = str(tmp_path / "sparse" / "cells.exr")
+    assert manifest["parameters"]["keep_covered"] == cells and cells in manifest["inputs"]
+    assert manifest["coverage"]["lit"]["kept_from"]["added"] == int((earlier & (cut < 0)).sum())
+
+
+@pytest.mark.parametrize("case", ["itself", "other-frame", "point", "missing"])
+def test_keeping_coverage_from_the_wrong_build_is_one_line(runs, tmp_path, case):
+    """--keep-covered naming the build it replaces, a build of another frame size, with point
+    sampling, or a directory without cells: one line naming it, nothing written."""
+    root, sim = runs[32]
+    out, extra, named = tmp_path / "out", [], None
+    if case == "itself":
+        shutil.copytree(root / "cell", out)
+        before = (out / "T.npy").read_bytes()
+        keep, extra, named = out, ["--force"], str(out)
+    elif case == "other-frame":
+        keep, named = runs[16][0] / "cell", str(runs[16][0] / "cell" / "cells.exr")
+    elif case == "point":
+        keep, extra, named = root / "cell", ["--sampling", "point"], "point sampling"
+    else:
+        keep, named = root / "spots", str(root / "spots" / "cells.exr")
+    result = run("build-isf", sim / "hdr", root / "spots", "-o", out, "--workers", 1, "--keep-covered", keep,
+                 *extra, ok=False)
+    assert result.exit_code == 1
+    message = result.output.strip().splitlines()[-1]
+    assert message.startswith("ilt: error:") and named in message, result.output
+    if case == "itself":
+        assert (out / "T.npy").read_bytes() == before
+    else:
+        assert not out.exists()
+    assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())

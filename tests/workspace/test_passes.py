@@ -10,6 +10,7 @@ from click.testing import CliRunner
 from ilt.capture.log import read_log
 from ilt.capture.loop import verify_log
 from ilt.cli import cli
+from ilt.io.exr import read_exr
 from ilt.io.manifest import read_manifest
 from tests.capture_helpers import SMALL_RIG
 
@@ -43,6 +44,12 @@ def test_a_pass_refines_then_captures_into_the_same_scan(refined):
     assert verify_log(ws / "capture") == []
     isf = read_manifest(ws / "isf")
     assert isf["plan_m"] == 10 and isf["m"] == 10 - len(isf["dropped_beams"])
+    # the build with the new beams keeps what the one refine read covered (its copy of the cells)
+    kept = ws / "passes" / "pass-1" / "cells.exr"
+    assert isf["parameters"]["keep_covered"] == str(kept) and str(kept) in isf["inputs"]
+    assert isf["coverage"]["lit"]["kept_from"]["cells"] == str(kept)
+    before, after = (read_exr(p)[0][..., 0] >= 0 for p in (kept, ws / "isf" / "cells.exr"))
+    assert before.any() and after[before].all()
 
 
 def test_new_beams_land_where_the_simulator_puts_them(refined):

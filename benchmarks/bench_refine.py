@@ -2,7 +2,7 @@
 
     python benchmarks/bench_refine.py [--scenes occluded,box,m] [--electrons 2e4] [--random 3]
                                       [--lattice 2] [--added 0.5] [--oracle] [--error-map PNG]
-                                      [--keep DIR] [--timing-m 4096]
+                                      [--keep-covered] [--keep DIR] [--timing-m 4096]
 
 Each scene is rendered once with a lattice ``--lattice`` times as fine as its base scan
 along each axis (``ilt simulate SCENE --frames``: flatland 2m beams at 2x, the box (2n)^2
@@ -27,6 +27,10 @@ with photon and read noise (``--electrons`` photo-electrons at the brightest spo
 as benchmarks/bench_coverage.py makes them; 0: noise-free). The figure of merit is the
 mean over photos and bounces, and the **equivalent uniform beams**: the uniform beam count
 with refine's error, interpolated as a power law over the uniform sweep; ratio to m + K.
+
+``--keep-covered``: every scan past the base is built keeping the base's coverage (``ilt
+build-isf --keep-covered``, as ``ilt run``'s refine passes build): a lab that scanned the base
+first and then scans more, by refine, at random or uniformly.
 
 ``--timing-m``: also time refine's decision (``ilt.refine.place_beams``) on a random
 m x m T with spots on a grid against build-isf's reading of the same T from disk
@@ -237,7 +241,8 @@ def error_map(case: Path, scans: list[tuple[str, Path]], mask: np.ndarray, out: 
 
 
 def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: int, rng, factor: int = 2,
-                added: tuple[float, ...] = (0.5,), oracle: bool = False, map_png: Path | None = None) -> None:
+                added: tuple[float, ...] = (0.5,), oracle: bool = False, map_png: Path | None = None,
+                keep_covered: bool = False) -> None:
     lattice_m, px, spot = lattice_parameters(scene, base_m, factor)
     case = root / f"{scene}-{lattice_m}"
     if not (case / "hdr").exists():
@@ -257,9 +262,18 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
     base_beams = uniform[min(uniform)]
     base = scan(case, hdr, f"uniform-{len(base_beams)}", base_beams)
     mask = covered(base)
+
+    def grown(name, beams):
+        """A scan of more beams than the base: with --keep-covered, built keeping the base's coverage."""
+        if len(beams) == len(base_beams):
+            return base
+        if keep_covered:
+            return scan(case, hdr, f"{name}-kept", beams, ("--keep-covered", base / "isf"))
+        return scan(case, hdr, name, beams)
+
     results = {}
     for count, beams in uniform.items():
-        results[f"uniform {count}"] = (count, errors(case, scan(case, hdr, f"uniform-{count}", beams), mask))
+        results[f"uniform {count}"] = (count, errors(case, grown(f"uniform-{count}", beams), mask))
     unused = sorted(set(range(lattice_m)) - set(base_beams))
     seconds = {}
     for share in added:
@@ -271,26 +285,28 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
         targets = np.loadtxt(base / f"refine-{k}" / "refine.csv", delimiter=",", skiprows=1, ndmin=2)[:, :2]
         chosen = nearest_unused(targets, spots, set(base_beams))
         results[f"refine +{k}"] = (len(base_beams) + len(chosen),
-                                   errors(case, scan(case, hdr, f"refine-{k}", base_beams + chosen), mask))
+                                   errors(case, grown(f"refine-{k}", base_beams + chosen), mask))
         draws_err = []
         for d in range(draws):
             extra = rng.choice(unused, size=k, replace=False).tolist()
-            draws_err.append(errors(case, scan(case, hdr, f"random-{k}-{d}", base_beams + extra), mask))
+            draws_err.append(errors(case, grown(f"random-{k}-{d}", base_beams + extra), mask))
         if draws_err:
             results[f"random +{k} (median of {draws})"] = (len(base_beams) + k, np.median(draws_err, axis=0))
         if oracle:
             chosen = oracle_beams(case, base, mask, spots, unused, k)
             results[f"oracle +{k} (true errors)"] = (len(base_beams) + k, errors(
-                case, scan(case, hdr, f"oracle-{k}", base_beams + chosen), mask))
+                case, grown(f"oracle-{k}", base_beams + chosen), mask))
     uniform_mean = {c: float(e.mean()) for c, e in (results[f"uniform {c}"] for c in uniform)}
     if map_png is not None:
         k = max(int(n.split("+")[1]) for n in results if n.startswith("refine +"))
         same = min((c for c in uniform if c >= len(base_beams) + k), default=max(uniform))
-        scans_dir = case / f"scans-{hdr.name}"
-        error_map(case, [(f"base {len(base_beams)}", base), (f"refine {len(base_beams)} + {k}", scans_dir / f"refine-{k}"),
-                         (f"uniform {same}", scans_dir / f"uniform-{same}")], mask,
+        scans_dir, kept = case / f"scans-{hdr.name}", "-kept" if keep_covered else ""
+        error_map(case, [(f"base {len(base_beams)}", base),
+                         (f"refine {len(base_beams)} + {k}", scans_dir / f"refine-{k}{kept}"),
+                         (f"uniform {same}", scans_dir / f"uniform-{same}{kept}")], mask,
                   map_png.with_name(f"{map_png.stem}-{scene}{map_png.suffix}"))
     noise = f"{electrons:g} e-" if electrons > 0 else "noise-free"
+    noise += ", every scan past the base keeping its coverage" if keep_covered else ""
     print(f"\n### {scene}, base m = {len(base_beams)}, lattice {lattice_m} ({factor}x), {noise}; refine decided in "
           + ", ".join(f"{v:.2f} s (+{k})" for k, v in seconds.items()) + " (the command)\n")
     print("| scan | beams | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
@@ -339,6 +355,8 @@ def main():
     ap.add_argument("--timing-m", type=int, default=0)
     ap.add_argument("--lattice", type=int, default=2, help="the lattice's density over the base's, per axis")
     ap.add_argument("--added", default="0.5", help="refine's new beams as shares of the base's, comma-separated")
+    ap.add_argument("--keep-covered", action="store_true",
+                    help="build every scan past the base with 'ilt build-isf --keep-covered' the base's ISF")
     ap.add_argument("--oracle", action="store_true", help="also the beams a true-error oracle picks")
     ap.add_argument("--error-map", type=Path, default=None,
                     help="PNG: the room photo's bounce-2 error of the base, refine and uniform scans (-SCENE added)")
@@ -350,7 +368,8 @@ def main():
     try:
         for scene in filter(None, args.scenes.split(",")):    # --scenes '': the timing only
             bench_scene(root, scene, base[scene], args.electrons, args.random, rng, args.lattice,
-                        tuple(float(a) for a in args.added.split(",")), args.oracle, args.error_map)
+                        tuple(float(a) for a in args.added.split(",")), args.oracle, args.error_map,
+                        args.keep_covered)
         if args.timing_m:
             bench_timing(args.timing_m, root)
     finally:

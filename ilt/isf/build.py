@@ -190,6 +190,9 @@ def earlier_coverage(source: str | os.PathLike, frame_shape: tuple[int, int], ma
         pixels, attributes = read_exr(path)
     except ImageError as exc:
         raise BuildError(str(exc)) from None
+    if attributes.get("channels") != ["label"]:
+        raise BuildError(f"{path}: channels {attributes.get('channels')}, not an ISF's cells (one channel 'label', "
+                         f"as 'ilt build-isf' writes {CELLS_FILE})")
     if pixels.shape[:2] != tuple(frame_shape):
         raise BuildError(f"{path}: its cells are {pixels.shape[1]} x {pixels.shape[0]}, this scan's frames "
                          f"{frame_shape[1]} x {frame_shape[0]}: not a build of the same camera and merge")

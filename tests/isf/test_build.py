@@ -485,10 +485,11 @@ def test_a_rebuild_keeps_what_an_earlier_build_covered(runs, tmp_path):
     assert manifest["coverage"]["lit"]["kept_from"]["added"] == int((earlier & (cut < 0)).sum())
 
 
-@pytest.mark.parametrize("case", ["itself", "other-frame", "point", "missing"])
+@pytest.mark.parametrize("case", ["itself", "other-frame", "point", "missing", "not-cells"])
 def test_keeping_coverage_from_the_wrong_build_is_one_line(runs, tmp_path, case):
     """--keep-covered naming the build it replaces, a build of another frame size, with point
-    sampling, or a directory without cells: one line naming it, nothing written."""
+    sampling, a directory without cells, or an image that is not an ISF's cells: one line
+    naming it, nothing written."""
     root, sim = runs[32]
     out, extra, named = tmp_path / "out", [], None
     if case == "itself":
@@ -499,8 +500,10 @@ def test_keeping_coverage_from_the_wrong_build_is_one_line(runs, tmp_path, case)
         keep, named = runs[16][0] / "cell", str(runs[16][0] / "cell" / "cells.exr")
     elif case == "point":
         keep, extra, named = root / "cell", ["--sampling", "point"], "point sampling"
-    else:
+    elif case == "missing":
         keep, named = root / "spots", str(root / "spots" / "cells.exr")
+    else:   # a decompose's coverage.exr (0 and 1, no -1) is not an ISF's cells
+        keep = named = str(root / "dec-cell" / "room" / "coverage.exr")
     result = run("build-isf", sim / "hdr", root / "spots", "-o", out, "--workers", 1, "--keep-covered", keep,
                  *extra, ok=False)
     assert result.exit_code == 1

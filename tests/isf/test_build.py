@@ -100,6 +100,32 @@ def test_cells_partition_the_lit_pixels():
     np.testing.assert_allclose(painted[lit], 1.0, rtol=1e-6)
 
 
+def test_the_lit_test_sees_faint_light_below_a_pixels_noise_and_stops_at_its_edge(monkeypatch):
+    """A sum of noisy frames (sigma 8 a pixel): a bright square where the spots are, inside
+    a plateau of faint light, 0.3 sigma a pixel (1.5 sigma of the 5 x 5 mean: the light
+    between a sparse scan's spots), on a dark background. The 5 x 5 test alone lights
+    little of the plateau's interior; the wide one-sided means (21 x 21: 6.3 sigma) light
+    all of it, and nothing more than 5 px past the plateau's edge (a centred 21 x 21 mean
+    would carry its light 10 px out) nor along the frame's edge (a 5 x 5 mean padded there
+    lit 13 pixels of noise: it counts the edge pixels many times)."""
+    import ilt.isf.build as build
+
+    rng = np.random.default_rng(0)
+    truth = np.zeros((120, 120))
+    truth[20:100, 20:100] = 0.3 * 8.0
+    truth[24:36, 24:36] = 100.0
+    noisy = truth + rng.normal(0, 8.0, truth.shape)
+    spots = np.array([[28.0, 28.0], [32.0, 32.0]])
+    lit, _ = build.lit_mask(noisy, spots, 1e-3)
+    near = np.zeros_like(lit)
+    near[15:105, 15:105] = True
+    assert lit[40:80, 40:80].all()
+    assert not lit[~near].any()
+    monkeypatch.setattr(build, "LIT_WIDE", ())
+    narrow, _ = build.lit_mask(noisy, spots, 1e-3)
+    assert narrow[40:80, 40:80].mean() < 0.5
+
+
 def test_the_lit_test_leaves_out_what_only_noise_lights():
     """A frame sum of 64 noisy frames: a lit square of 100 units a pixel over a background of
     zero-mean noise (sigma 1 a frame, 8 for the sum). The 1e-3 fraction alone keeps half

@@ -102,7 +102,7 @@ CENTROIDS = _table(
 BUILD_ISF = _table(
     StageOption("sampling", "sampling", "cell", click.Choice(["cell", "point"])),
     StageOption("min_separation", "min-separation", 2.0, click.FloatRange(min=0)),
-    StageOption("lit_fraction", "lit-fraction", 1e-3, click.FloatRange(min=0)),
+    StageOption("lit_fraction", "lit-fraction", 1e-4, click.FloatRange(min=0)),
     StageOption("max_cell_radius", "max-cell-radius", None, click.FloatRange(min=0, min_open=True)),
     StageOption("fine_degree", "fine-degree", 1, click.IntRange(0, 2)),
     StageOption("no_fine", "no-fine", False),

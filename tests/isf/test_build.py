@@ -100,6 +100,28 @@ def test_cells_partition_the_lit_pixels():
     np.testing.assert_allclose(painted[lit], 1.0, rtol=1e-6)
 
 
+def test_noise_free_frames_light_the_indirect_light_between_sparse_spots():
+    """Noise-free frames: between a sparse scan's spots there is only indirect light, at
+    2e-4 to 7.5e-4 of the spots' level on the simulator's M at 48 beams (benchmarks/
+    noisy_sweep.py). The default --lit-fraction (the same in build_isf and the run
+    config's table) lights all of it and none of the dark background; 1e-3 lit a quarter
+    of that strip, and its bounces were then worse than on noisy frames (docs/fullres.md)."""
+    import inspect
+
+    from ilt.isf.build import build_isf, lit_mask
+    from ilt.workspace.options import BUILD_ISF
+
+    default = inspect.signature(build_isf).parameters["lit_fraction"].default
+    assert BUILD_ISF["lit_fraction"].default == default
+    frame_sum = np.zeros((40, 200))
+    frame_sum[:, 20:180] = np.linspace(2e-4, 7.5e-4, 160)     # the indirect light, spots' level 1
+    spots = np.array([[40.0, 20.0], [100.0, 20.0], [160.0, 20.0]])
+    frame_sum[20, [40, 100, 160]] = 1.0
+    lit, _ = lit_mask(frame_sum, spots, default)
+    np.testing.assert_array_equal(lit, frame_sum > 0)
+    assert not (lit_mask(frame_sum, spots, 1e-3)[0] & (frame_sum < 1.0)).any()
+
+
 def test_the_lit_test_sees_faint_light_below_a_pixels_noise_and_stops_at_its_edge(monkeypatch):
     """A sum of noisy frames (sigma 8 a pixel): a bright square where the spots are, inside
     a plateau of faint light, 0.3 sigma a pixel (1.5 sigma of the 5 x 5 mean: the light

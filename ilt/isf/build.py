@@ -166,7 +166,7 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     lit = frame_sum > relative
     noise = 0.0
     if dark_noise is not None or np.count_nonzero(frame_sum < 0) >= 16:
-        (smooth, count), = _window_means(frame_sum, LIT_SMOOTH, corners=False)
+        (smooth, root), = _window_means(frame_sum, LIT_SMOOTH, corners=False)
         if dark_noise is not None:   # a dark pixel's variance in one frame, and the frames summed
             noise = float(np.sqrt(dark_noise[0] * dark_noise[1])) / LIT_SMOOTH
         elif (negative := smooth[smooth < 0]).size >= 16:
@@ -174,19 +174,22 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
         if noise > 0:
             # both tests on the smoothed sum, both with the hysteresis: the relative one on
             # single noisy pixels let a third of the rim in or out by the noise alone
-            def thresholds(mean_noise):   # the (low, high) of a mean with this noise
-                return (np.maximum(LIT_LOW_SIGMAS * mean_noise, relative * LIT_LOW_SIGMAS / sigmas),
-                        np.maximum(sigmas * mean_noise, relative))
+            pixel = noise * LIT_SMOOTH    # one pixel's noise; a mean of n pixels has 1 / sqrt(n) of it
 
-            lit = _hysteresis(smooth, *thresholds(noise * LIT_SMOOTH / np.sqrt(count)))
+            def tests(mean, root):   # (weak, strong) of means of root^2 pixels
+                z = mean * root
+                return ((mean > relative * LIT_LOW_SIGMAS / sigmas) & (z > LIT_LOW_SIGMAS * pixel),
+                        (mean > relative) & (z > sigmas * pixel))
+
+            lit = _connected(*tests(smooth, root))
             # ... and on wider one-sided means, which see the faint light between a sparse
             # scan's spots without carrying an object's light past its silhouette: a pixel
             # passes where all four of its corner windows do (:func:`_window_means`)
             for size in LIT_WIDE:
                 weak = strong = True
-                for mean, count in _window_means(frame_sum, size):
-                    low, high = thresholds(noise * LIT_SMOOTH / np.sqrt(count))
-                    weak, strong = weak & (mean > low), strong & (mean > high)
+                for mean, root in _window_means(frame_sum, size):
+                    passes = tests(mean, root)
+                    weak, strong = weak & passes[0], strong & passes[1]
                 lit |= _connected(weak, strong)
             if frame_peak is not None and beams:
                 lit |= _peak_test(np.asarray(frame_peak, np.float64), rows, cols, fraction, sigmas,
@@ -197,7 +200,7 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
 
 def _window_means(image: np.ndarray, size: int, corners: bool = True):
     """For each ``size`` x ``size`` window about a pixel: (H, W) the mean of the window and
-    the count of pixels it averages (a mean's noise is a pixel's / sqrt(count)).
+    the square root of the count of pixels it averages (a mean's noise is a pixel's / that).
 
     ``corners``: the four windows that have the pixel at a corner, else the one centred
     on it. Where the light goes on in every direction (the faint indirect light between
@@ -221,12 +224,18 @@ def _window_means(image: np.ndarray, size: int, corners: bool = True):
         centred = uniform_filter(image, size=size, mode="constant")    # right where the window is inside
         rows = np.clip(np.arange(height), half, height - 1 - half)
         cols = np.clip(np.arange(width), half, width - 1 - half)
-        yield centred[np.ix_(rows, cols)], float(size * size)
+        yield centred[np.ix_(rows, cols)], float(size)
         return
-    ones = np.ones(image.shape)
-    for origin in [(dy, dx) for dy in (-half, half) for dx in (-half, half)] if corners else [(0, 0)]:
-        share = uniform_filter(ones, size=size, mode="constant", origin=origin)   # of the window inside
-        yield uniform_filter(image, size=size, mode="constant", origin=origin) / share, share * size * size
+    # the window centred on each pixel of the image padded by ``half``: a corner window of
+    # a pixel is the centred one of its diagonal neighbour ``half`` away (one filter, four
+    # slices: four filters cost 5.7x the 5 x 5 test alone on a 12 Mpx frame)
+    total = uniform_filter(np.pad(image, half), size=size, mode="constant")
+    share = uniform_filter(np.pad(np.ones(image.shape), half), size=size, mode="constant")   # of it inside
+    root = np.sqrt(share) * size
+    starts = [(y, x) for y in (0, 2 * half) for x in (0, 2 * half)] if corners else [(half, half)]
+    for y, x in starts:
+        window = (slice(y, y + height), slice(x, x + width))
+        yield total[window] / share[window], root[window]
 
 
 def earlier_coverage(source: str | os.PathLike, frame_shape: tuple[int, int],

@@ -105,7 +105,10 @@ def test_noise_free_frames_light_the_indirect_light_between_sparse_spots():
     2e-4 to 7.5e-4 of the spots' level on the simulator's M at 48 beams (benchmarks/
     noisy_sweep.py). The default --lit-fraction (the same in build_isf and the run
     config's table) lights all of it and none of the dark background; 1e-3 lit a quarter
-    of that strip, and its bounces were then worse than on noisy frames (docs/fullres.md)."""
+    of that strip, and its bounces were then worse than on noisy frames (docs/fullres.md).
+    A silhouette's pixels, partly background (under half the light of the lit pixels about
+    them, next to one with none), are left out; a strip that ends on a pixel's edge keeps
+    its last pixels."""
     import inspect
 
     from ilt.isf.build import build_isf, lit_mask
@@ -119,6 +122,12 @@ def test_noise_free_frames_light_the_indirect_light_between_sparse_spots():
     frame_sum[20, [40, 100, 160]] = 1.0
     lit, _ = lit_mask(frame_sum, spots, default)
     np.testing.assert_array_equal(lit, frame_sum > 0)
+    frame_sum[:, 179] *= 0.3              # the object's edge cuts these pixels: 30% of them is lit
+    frame_sum[:, 20] *= 0.8               # ... and 80% of these (both still above the fraction)
+    assert frame_sum[:, [20, 179]].min() > default
+    lit, _ = lit_mask(frame_sum, spots, default)
+    np.testing.assert_array_equal(lit[:, 179], np.zeros(40, bool))
+    np.testing.assert_array_equal(lit[:, 20:179], np.ones((40, 159), bool))
     assert not (lit_mask(frame_sum, spots, 1e-3)[0] & (frame_sum < 1.0)).any()
 
 

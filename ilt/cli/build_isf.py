@@ -29,7 +29,9 @@ from ilt.workspace.options import BUILD_ISF
 @stage_option(BUILD_ISF["min_separation"], show_default=True,
               help="Drop a spot closer than this many pixels to a kept one.")
 @stage_option(BUILD_ISF["lit_fraction"], show_default=True,
-              help="Pixels whose frame sum is below this fraction of its median at the spots are outside every cell.")
+              help="Pixels whose frame sum is below this fraction of its median at the spots are outside every "
+                   "cell (on noisy frames it must also stand above its noise). Raise it where spots/sum.exr shows "
+                   "lens flare around the scene.")
 @stage_option(BUILD_ISF["max_cell_radius"],
               help="Cells also end this many frame pixels from their spot (default: no limit; cells end "
                    "where the scan's light does, above the frames' noise, whatever the spot spacing).")

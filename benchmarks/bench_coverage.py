@@ -55,16 +55,17 @@ def peak_of(hdr: Path) -> float:
     return max(float(read_exr(f)[0].max()) for f in sorted(hdr.glob("beam-*.exr")))
 
 
-def noisy_copy(src: Path, dst: Path, gain: float, rng) -> None:
+def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_NOISE_E) -> None:
     """dst/hdr: every beam frame of src/hdr with photon and read noise, ``gain``
-    photo-electrons per frame unit (see the module doc)."""
+    photo-electrons per frame unit (see the module doc); ``read_noise`` 0: photon noise
+    alone, which never reads below zero (as a path tracer's Monte Carlo noise)."""
     from ilt.io.exr import read_exr, write_exr
 
     dst.mkdir(parents=True)
     frames = sorted(src.glob("beam-*.exr"))
     for f in frames:
         image, attributes = read_exr(f)
-        e = rng.poisson(np.maximum(image.astype(np.float64), 0) * gain) + rng.normal(0, READ_NOISE_E, image.shape)
+        e = rng.poisson(np.maximum(image.astype(np.float64), 0) * gain) + (rng.normal(0, read_noise, image.shape) if read_noise else 0.0)
         keep = {k: v for k, v in attributes.items() if k.startswith("ilt:")}
         write_exr(dst / f.name, (e / gain).astype(np.float32), ["Y"], keep)
     for other in src.iterdir():

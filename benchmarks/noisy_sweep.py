@@ -78,7 +78,7 @@ def nested_sets(scene: str, m: int) -> dict[int, list[int]]:
 
 
 def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None = None,
-          keep_covered: bool = False) -> dict:
+          keep_covered: bool = False, read_noise: float = coverage_bench.READ_NOISE_E) -> dict:
     m, px, spot = lattice(scene)
     if spot_px is not None:   # the laser's spot, whatever the scan: sigma in full-resolution pixels
         spot = spot_px / px
@@ -88,9 +88,10 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
                          "-o", case, "--force")
     hdr = case / "hdr"
     if electrons > 0:
-        if not (case / "hdr-noisy").exists():
-            coverage_bench.noisy_copy(hdr, case / "hdr-noisy", electrons / coverage_bench.peak_of(hdr), rng)
-        hdr = case / "hdr-noisy"
+        noisy = case / ("hdr-noisy" if read_noise == coverage_bench.READ_NOISE_E else f"hdr-noisy-read{read_noise:g}")
+        if not noisy.exists():
+            coverage_bench.noisy_copy(hdr, noisy, electrons / coverage_bench.peak_of(hdr), rng, read_noise)
+        hdr = noisy
     where, earlier = {}, None
     for count, beams in sorted(nested_sets(scene, m).items()):
         # --keep-covered: each scan built with the sparser scan's coverage (ilt build-isf --keep-covered)
@@ -109,6 +110,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
                        "frame_coverage": float(manifest["coverage"]["fraction"]),
                        "m_kept": int(manifest["m"])}
     return {"scene": scene, "lattice": m, "px_per_beam": px, "spot": spot, "electrons": electrons,
+            "read_noise": read_noise,
             "keep_covered": keep_covered,
             "base_pixels": int(mask.sum()), "scans": rows}
 
@@ -130,8 +132,9 @@ def rises(result: dict) -> list[str]:
 
 def table(result: dict, per_beam: float) -> str:
     kept = ", each built keeping the sparser scan's coverage" if result.get("keep_covered") else ""
+    read = "" if result.get("read_noise", 3.0) else ", no read noise"
     lines = [(f"### {result['scene']}: lattice {result['lattice']} ({result['px_per_beam']:g} px per beam), "
-              f"{result['electrons']:g} e-{kept}, over the {result['base_pixels']} pixels of the sparsest scan"), "",
+              f"{result['electrons']:g} e-{read}{kept}, over the {result['base_pixels']} pixels of the sparsest scan"), "",
              ("| m | m kept | rig hours | covered | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
               + " | mean |"), "|---|---|---|---|" + "---|" * 10]
     for count, row in sorted(result["scans"].items()):
@@ -179,6 +182,9 @@ def main() -> None:
                     help="the laser spot's sigma in full-resolution pixels (default: 0.6 px flatland, 0.8 px "
                          "the box: no flank reaches the next cell even at the lattice; 2.4 puts the lattice "
                          "3.3 sigmas apart, where each spot lights its neighbours' cells)")
+    ap.add_argument("--read-noise", type=float, default=coverage_bench.READ_NOISE_E,
+                    help="read noise in e- (0: photon noise alone, which never reads below zero, as a path "
+                         "tracer's Monte Carlo noise: ilt then measures the noise only where it is plain)")
     ap.add_argument("--keep-covered", action="store_true",
                     help="build each scan with 'ilt build-isf --keep-covered' the next sparser scan's ISF (a lab "
                          "that rescans denser, or ilt run's refine passes)")
@@ -199,7 +205,7 @@ def main() -> None:
     results = []
     for scene in filter(None, args.scenes.split(",")):
         results.append(sweep(args.scratch / f"e{args.electrons:g}", scene, args.electrons, rng, args.spot_px,
-                             args.keep_covered))
+                             args.keep_covered, args.read_noise))
         print("\n" + table(results[-1], per_beam), flush=True)
     if args.plot:
         plot(results, per_beam, args.plot)

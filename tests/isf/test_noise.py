@@ -57,6 +57,25 @@ def test_the_frames_noise_is_read_off_the_frames(gain):
     assert fit_frame_noise(clean, spots) is None
 
 
+@pytest.mark.parametrize("gain", [0.5, 5.0])
+def test_noise_that_never_goes_below_zero_is_read_too(gain):
+    """Photon noise alone (no read noise: counts, or a path tracer's Monte Carlo) never
+    reads below zero, yet it is noise: the fit gives X / gain within 20% where the frames
+    hold light (and 0 in the dark corner, which holds none), where it once gave no model
+    and a Lambertian scan was refused for want of a noise floor. Noise-free frames still
+    give none, their fine detail too (a texture as fine as noise, 1% of the light)."""
+    rng = np.random.default_rng(3)
+    clean, spots = _frames(rng)
+    noisy = [_noisy(f, gain, rng, read=0.0) for f in clean]
+    assert min(float(f.min()) for f in noisy) >= 0.0
+    fit = fit_frame_noise(noisy, spots)
+    for level in (100.0, 200.0, 350.0):
+        assert fit.pixel_variance(np.array([level]))[0] == pytest.approx(level / gain, rel=0.2)
+    assert fit.pixel_variance(np.array([0.0]))[0] == pytest.approx(0.0, abs=0.05 / gain)
+    textured = [f * (1.0 + 0.01 * rng.standard_normal(f.shape)) for f in clean]
+    assert fit_frame_noise(textured, spots) is None
+
+
 def test_a_brackets_steps_are_followed():
     """A merged bracket's bright pixels come from a shorter exposure: their variance per
     unit of light is 8x the dim ones' above X = 150. The curve follows both (a line

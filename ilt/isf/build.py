@@ -151,10 +151,12 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     with it they fall with m and halve (bounce 2 at m = 189: 0.179 -> 0.092). The 5 x 5
     mean alone left out light the scan had measured: between a sparse scan's spots the
     indirect light is below its noise, and those pixels got no bounces at all (the noisy
-    M at 48 beams lit 74008 pixels; 90461 with the wide means, 98367 at 384 beams) and
+    M at 48 beams lit 74008 pixels; 90461 with the wide means, 98367 at 384 beams, all
+    at a lit fraction of 1e-3) and
     the pixels at its rim went in or out by the noise, so a denser scan lost up to 1.1%
-    of a sparser one's (0.35% with them; the box's 0.38%, at its silhouette, is
-    unchanged). Over the pixels the 5 x 5 test lit, the mean error of bounces 1-3 of the
+    of a sparser one's (with them, and a lit fraction of 1e-4, up to 0.37% on the
+    flatland scenes and the box's 0.44%, at its silhouette). Over the pixels the 5 x 5
+    test lit (both at a fraction of 1e-3), the mean error of bounces 1-3 of the
     48- and 96-beam flatland scans is 9-20% lower with them, and the box's the same
     (docs/fullres.md).
     """
@@ -164,10 +166,15 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     rows = np.clip(np.floor(centroids[:, 1] + 0.5).astype(int), 0, frame_sum.shape[0] - 1)
     cols = np.clip(np.floor(centroids[:, 0] + 0.5).astype(int), 0, frame_sum.shape[1] - 1)
     relative = fraction * float(np.median(frame_sum[rows, cols]))
-    # noise-free: and not partly background (:func:`_silhouette`)
-    lit = (frame_sum > relative) & ~_silhouette(frame_sum)
+    lit = frame_sum > relative
     noise = 0.0
-    if dark_noise is not None or np.count_nonzero(frame_sum < 0) >= 16:
+    signed = np.count_nonzero(frame_sum < 0) >= 16
+    if not signed:
+        # no negatives (noise-free, or noise that never reads below zero): and not partly
+        # background. (Where noise reads below zero, half the dark pixels would count as
+        # background, and the test gather a window about every pixel next to them.)
+        lit &= ~_silhouette(frame_sum)
+    if dark_noise is not None or signed:
         (smooth, root), = _window_means(frame_sum, LIT_SMOOTH, corners=False)
         if dark_noise is not None:   # a dark pixel's variance in one frame, and the frames summed
             noise = float(np.sqrt(dark_noise[0] * dark_noise[1])) / LIT_SMOOTH

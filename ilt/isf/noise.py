@@ -149,7 +149,7 @@ def fit_frame_noise(frames, spots=None) -> FrameNoise | None:
             variances.append(float(np.mean(squares[:max(1, int(np.ceil(0.98 * squares.size)))])) / 1.25)
         counts.append(float(part.size))
     x, v = np.array(levels), np.array(robust if signed else variances)
-    if not signed and not _noise_without_negatives(x, v, frames, spots):
+    if not signed and not _noise_without_negatives(x, v, parts, frames, spots):
         return None
     v = isotonic_regression(v, weights=np.array(counts)).x
     x, keep = np.unique(x, return_index=True)        # knots at distinct levels
@@ -160,7 +160,7 @@ def fit_frame_noise(frames, spots=None) -> FrameNoise | None:
                       frames=len(frames), pixels=int(s.size), bins=int(x.size), slope=max(slope, 0.0))
 
 
-def _noise_without_negatives(levels: np.ndarray, variances: np.ndarray, frames, spots) -> bool:
+def _noise_without_negatives(levels: np.ndarray, variances: np.ndarray, parts, frames, spots) -> bool:
     """Frames with no negative pixel: noise-free, clipped at zero by their maker, or with a
     noise that cannot go below zero (photon counts without read noise, a path tracer's
     Monte Carlo). True where their residuals are noise: as large against the pixels 2 px
@@ -175,14 +175,14 @@ def _noise_without_negatives(levels: np.ndarray, variances: np.ndarray, frames, 
     lit = levels > 0
     if np.count_nonzero(lit) < 16 or float(np.median(np.sqrt(variances[lit]) / levels[lit])) < MIN_RELATIVE_NOISE:
         return False
-    narrow = wide = 0.0
-    for k, frame in enumerate(frames):
-        spot = None if spots is None else spots[k]
-        for step in (1, 2):
-            level, d = frame_residuals(frame, spot, step)
-            squares = np.sort((d * d)[level > 0])
-            total = float(np.sum(squares[:int(np.ceil(0.98 * squares.size))]))
-            narrow, wide = (narrow + total, wide) if step == 1 else (narrow, wide + total)
+    def trimmed(level, d):   # the sum of squares of the lit pixels' residuals, the 2% largest left out
+        squares = np.sort((d * d)[level > 0])
+        return float(np.sum(squares[:int(np.ceil(0.98 * squares.size))]))
+
+    # ``parts``: the fit's own (levels, residuals) of each frame, against the next pixels
+    narrow = sum(trimmed(*part) for part in parts)
+    wide = sum(trimmed(*frame_residuals(frame, None if spots is None else spots[k], 2))
+               for k, frame in enumerate(frames))
     return narrow > 0 and wide / narrow < MAX_WIDE_RATIO
 
 

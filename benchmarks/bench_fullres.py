@@ -34,7 +34,9 @@ memory (m = 4096 on 1280 x 960): one ``build_isf(..., fine_degree=1)`` with
   float32 bytes). Target <= 1/4. Then, for the photo: ``ilt.decompose.fullres.full_resolution``
   (8 bounces + indirect, residual, coverage; after ``bounce_images`` with the
   operator decompose would build, not timed) against writing those 11 EXRs as
-  ``ilt decompose`` does (``write_exr``, zip). Target: compute <= 3 x write.
+  ``ilt decompose`` does (``write_exr``, zip). Target: compute <= 3 x write. And
+  ``full_resolution`` with the flat cells left flat (``neighbour_slopes=False``, the baseline
+  of the neighbour slopes' cost, ilt/isf/slopes.py).
 
 ``--quick``: build at m = 256 on 320 x 240, memory at m = 1024 on 640 x 480, 1
 repeat (about two minutes on 2 cores). ``--profile``: instead of the cases, a
@@ -399,7 +401,7 @@ def case_memory(work: Path, m: int, width: int, height: int, workers: int, repea
     t1 = op.t1_unit * op.column_norms
     fine, why = load_fine(isf)
     assert fine is not None, why
-    compute, write, images = [], [], None
+    compute, flat_compute, write, images = [], [], [], None
     out = work / "fullres-out"
     with TreeMemory() as fr_mem:
         t_first = timed(lambda: full_resolution(fine, photo.image, dec, t1, photo.saturated))
@@ -407,6 +409,9 @@ def case_memory(work: Path, m: int, width: int, height: int, workers: int, repea
         t0 = time.perf_counter()
         images = full_resolution(fine, photo.image, dec, t1, photo.saturated)
         compute.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()     # the flat cells left flat (no neighbour slopes): the baseline
+        full_resolution(fine, photo.image, dec, t1, photo.saturated, neighbour_slopes=False)
+        flat_compute.append(time.perf_counter() - t0)
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir()
         t0 = time.perf_counter()
@@ -422,6 +427,9 @@ def case_memory(work: Path, m: int, width: int, height: int, workers: int, repea
           f"({', '.join(images)}), medians of {repeats}")
     print(f"    full_resolution           {statistics.median(compute):8.2f} s   (first call {t_first:.2f} s, "
           f"peak resident {gib(fr_mem.rss * 2**20)}, {gib(fr_mem.baseline * 2**20)} before)")
+    print(f"    without neighbour slopes  {statistics.median(flat_compute):8.2f} s   ({int(fine.flat_cells.sum())} of "
+          f"{fine.geometry.m} cells flat; with them "
+          f"{statistics.median(c / f for c, f in zip(compute, flat_compute)):.2f} x, median of the ratios)")
     print(f"    writing the {len(images)} EXRs       {statistics.median(write):8.2f} s   ({gib(written)})")
     print(f"  target: compute <= 3 x write: {ratio:.2f} x, {'met' if ratio <= 3 else 'MISSED'}")
     print("  all times (s): compute " + ", ".join(f"{v:.2f}" for v in compute)

@@ -15,7 +15,8 @@ from ilt.isf.fine import FineOperator
 
 
 def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np.ndarray,
-                    excluded: np.ndarray | None = None, weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                    excluded: np.ndarray | None = None, weights: np.ndarray | None = None,
+                    neighbour_slopes: bool = True) -> dict[str, np.ndarray]:
     """The photo's full-resolution bounce images (module docstring).
 
     photo : (H, W) or (H, W, c) float32, on the cells' grid; decomposition : its
@@ -24,6 +25,8 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     (saturated): no coverage; weights : (N, m[, c]) the beam weights of each bounce's
     re-emitted light, ``T^-1 r_n`` (default ``L_(n+1) / t1``, the paper's; with a spill
     matrix the caller's, from the unmixed recursion, :mod:`ilt.isf.spill`).
+    neighbour_slopes : give the cells the build kept flat the limited slope of their
+    neighbours' means of each field (:mod:`ilt.isf.slopes`); False: flat, as before.
     Returns {"bounce-1" .. "bounce-N", "indirect", "residual", "coverage"}: (H, W[, c])
     float32 images; ``photo = bounce-1 + ... + bounce-N + residual`` at every pixel.
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
@@ -36,6 +39,8 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     weights = bounces / t1[None, :, None] if weights is None else np.asarray(weights).reshape(count, m, -1)
     per_cell = fine.per_cell(weights).reshape(-1, m, count, flat.shape[1])
     basis = fine.geometry.basis(fine.degree)
+    slopes = fine.neighbour_slopes(basis) if neighbour_slopes else None
+    area = np.maximum(fine.geometry.area, 1.0)[:, None]
     inside = fine.geometry.inside
     excluded = None if excluded is None or not excluded.any() else excluded.reshape(-1)
 
@@ -50,7 +55,10 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     previous = None
     for n in range(count):
         residual = residual - bounces[n]                               # r_(n+1)
-        phi = fine.field(residual, per_cell[:, :, n], basis)           # Phi_n
+        terms = per_cell[:, :, n]
+        if slopes is not None:                                         # flat cells: their neighbours'
+            terms = _add_planes(terms, slopes.coefficients(residual / area))
+        phi = fine.field(residual, terms, basis)                       # Phi_n
         if n == 0:
             out["bounce-1"] = image_of(flat[inside] - phi)
             out["indirect"] = image_of(phi)
@@ -64,3 +72,10 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     out["coverage"] = coverage.reshape(fine.shape)
     return {name: out[name] for name in [f"bounce-{n}" for n in range(1, count + 1)]
             + ["indirect", "residual", "coverage"]}
+
+
+def _add_planes(terms: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """``terms`` (K, m, c) with the ``dx``, ``dy`` planes (2, m, c) added to its first two."""
+    out = terms.copy()
+    out[:2] += planes.astype(out.dtype)
+    return out

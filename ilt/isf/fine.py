@@ -41,6 +41,7 @@ identity, tested. Pixels outside every cell have no indirect model: their covera
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 from dataclasses import dataclass
@@ -267,6 +268,23 @@ class FineOperator:
     @property
     def shape(self) -> tuple[int, int]:
         return self.geometry.shape
+
+    @functools.cached_property
+    def flat_cells(self) -> np.ndarray:
+        """(m,) bool: the cells the build kept flat (every coefficient of theirs 0)."""
+        flat = np.ones(self.geometry.m, bool)
+        for k in range(self.coefficients.shape[0]):
+            flat &= ~np.any(np.asarray(self.coefficients[k]) != 0, axis=1)
+        return flat
+
+    def neighbour_slopes(self, basis: np.ndarray | None = None):
+        """The :class:`ilt.isf.slopes.NeighbourSlopes` of the flat cells, or None for degree
+        0 (flat cells asked for) or when no cell is flat; ``basis``: :meth:`CellGeometry.basis`."""
+        from ilt.isf.slopes import NeighbourSlopes
+
+        if self.degree < 1 or not self.flat_cells.any():
+            return None
+        return NeighbourSlopes(self.geometry, self.flat_cells, basis)
 
     def coverage(self) -> np.ndarray:
         """(H, W) float32: 1 where a pixel's indirect light is modelled (inside a cell)."""

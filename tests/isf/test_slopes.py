@@ -1,0 +1,110 @@
+"""Flat cells' slopes from their neighbours' means (ilt.isf.slopes), against analytic fields."""
+
+import numpy as np
+
+from ilt.isf.fine import CellGeometry
+from ilt.isf.slopes import NeighbourSlopes
+
+
+def _grid(cells_y, cells_x, px):
+    """Square cells of ``px`` pixels a side, in scanline order."""
+    y, x = np.mgrid[:cells_y * px, :cells_x * px]
+    return (y // px) * cells_x + x // px
+
+
+def _voronoi(shape, spacing, rng):
+    """Cells about jittered lattice spots (as a scan's are)."""
+    ys, xs = np.mgrid[spacing // 2:shape[0]:spacing, spacing // 2:shape[1]:spacing]
+    spots = np.stack([xs.ravel(), ys.ravel()], 1) + rng.uniform(-0.3, 0.3, (xs.size, 2)) * spacing
+    y, x = np.mgrid[:shape[0], :shape[1]]
+    d = (x[..., None] - spots[:, 0]) ** 2 + (y[..., None] - spots[:, 1]) ** 2
+    return d.argmin(axis=2), spots.shape[0]
+
+
+def _planes(geometry, slopes, means):
+    """(n, c) the field at the pixels inside cells: each cell's mean plus its plane."""
+    coefficients = slopes.coefficients(means)
+    basis = geometry.basis(1)
+    label = geometry.label
+    return means[label] + basis[0][:, None] * coefficients[0][label] + basis[1][:, None] * coefficients[1][label]
+
+
+def _means(geometry, field):
+    """(m, 1) cell means of ``field`` (H, W)."""
+    values = field.ravel()[geometry.inside]
+    return (np.bincount(geometry.label, values, geometry.m) / geometry.area)[:, None]
+
+
+def test_a_linear_field_is_rebuilt_exactly_inside_the_scan():
+    """Analytic: cell means of f = 2 + 0.3 x - 0.1 y give back f at every pixel of every
+    cell whose neighbours surround it (the limiter leaves a ramp alone), in the basis'
+    units (slope x the cell's size)."""
+    labels = _grid(6, 7, 6)
+    geometry = CellGeometry.from_labels(labels, 42)
+    y, x = np.mgrid[:36, :42].astype(np.float64)
+    field = 2.0 + 0.3 * x - 0.1 * y
+    means = _means(geometry, field)
+    slopes = NeighbourSlopes(geometry, np.ones(42, bool))
+    coefficients = slopes.coefficients(means)
+    interior = np.array([r * 7 + c for r in range(1, 5) for c in range(1, 6)])
+    np.testing.assert_allclose(coefficients[0, interior, 0], 0.3 * 6, rtol=1e-10)
+    np.testing.assert_allclose(coefficients[1, interior, 0], -0.1 * 6, rtol=1e-10)
+    rebuilt = _planes(geometry, slopes, means)[:, 0]
+    inside = np.isin(geometry.label, interior)
+    np.testing.assert_allclose(rebuilt[inside], field.ravel()[geometry.inside][inside], atol=1e-12)
+    # the corner cells holding the ramp's extremes (top right, bottom left): no plane can stay in range there
+    assert np.all(coefficients[:, [6, 35], 0] == 0)
+
+
+def test_no_plane_leaves_the_range_of_its_neighbours_means():
+    """The Barth-Jespersen bound, an identity of the limiter: on Voronoi cells of jittered
+    spots, for a field with a jump, a peak and noise, every pixel of every cell's plane
+    lies between the smallest and largest mean of the cell and its neighbours, and every
+    plane sums to zero over its cell."""
+    rng = np.random.default_rng(3)
+    labels, m = _voronoi((60, 80), 10, rng)
+    geometry = CellGeometry.from_labels(labels, m)
+    y, x = np.mgrid[:60, :80].astype(np.float64)
+    field = np.where(x > 37.5, 3.0, 1.0) + np.exp(-((x - 20) ** 2 + (y - 30) ** 2) / 50.0) + 0.02 * x
+    field = np.stack([field, field * 0.5 + rng.normal(0, 0.2, field.shape)], axis=-1)
+    means = np.stack([_means(geometry, field[..., k])[:, 0] for k in range(2)], axis=1)
+    slopes = NeighbourSlopes(geometry, np.ones(m, bool))
+    rebuilt = _planes(geometry, slopes, means)
+    pairs = set()
+    for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1], labels[1:])):
+        edge = a != b
+        pairs |= set(zip(a[edge].tolist(), b[edge].tolist())) | set(zip(b[edge].tolist(), a[edge].tolist()))
+    high, low = means.copy(), means.copy()
+    for i, j in pairs:
+        high[i], low[i] = np.maximum(high[i], means[j]), np.minimum(low[i], means[j])
+    label = geometry.label
+    assert np.all(rebuilt <= high[label] + 1e-12) and np.all(rebuilt >= low[label] - 1e-12)
+    sums = np.stack([np.bincount(label, rebuilt[:, k] - means[label, k], m) for k in range(2)], axis=1)
+    assert np.abs(sums).max() < 1e-9
+    assert np.abs(slopes.coefficients(means)).max() > 0.1        # and the planes are there
+
+
+def test_a_peak_stays_flat_and_sloped_cells_keep_their_own():
+    """A cell whose mean is above all its neighbours' gets no slope; cells the build
+    sloped get 0 here (their slopes are in the fine coefficients)."""
+    labels = _grid(3, 3, 5)
+    geometry = CellGeometry.from_labels(labels, 9)
+    means = np.array([[1.0], [2.0], [3.0], [2.0], [5.0], [4.0], [3.0], [4.0], [5.0]])
+    flat = np.ones(9, bool)
+    flat[7] = False
+    coefficients = NeighbourSlopes(geometry, flat).coefficients(means)
+    assert np.all(coefficients[:, 4] == 0)                        # the peak
+    assert np.all(coefficients[:, 7] == 0)                        # sloped by the build
+    assert coefficients[0, 3, 0] > 0 and coefficients[1, 3, 0] > 0   # a cell on the ramp up to the peak
+
+
+def test_a_row_of_strips_gets_no_slope_across_the_row():
+    """A flatland scan's cells are strips the height of the frame, side by side: a field
+    rising along x gets its slope in x inside the row, and none in y (nothing to read it from)."""
+    x = np.arange(64)
+    labels = np.broadcast_to(x // 8, (32, 64))
+    geometry = CellGeometry.from_labels(labels, 8)
+    field = np.broadcast_to(0.5 + 0.25 * x, (32, 64)).astype(np.float64)
+    coefficients = NeighbourSlopes(geometry, np.ones(8, bool)).coefficients(_means(geometry, field))
+    np.testing.assert_allclose(coefficients[0, 1:7, 0], 0.25 * geometry.size[1:7], rtol=1e-10)
+    assert np.abs(coefficients[1]).max() < 1e-12

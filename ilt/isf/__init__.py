@@ -3,7 +3,8 @@
 ``directory`` (the ISF directory: ``T.npy``, ``samples.csv``, ``cells.exr``, scales),
 ``cells`` (each sample's cell of pixels), ``layout`` (the plan's layout: a vector of m
 samples as an image), ``build`` (``ilt build-isf``: T's columns from the frames, one
-pass), ``fine`` (the fine operator for full-resolution bounces, fitted in that pass).
+pass), ``fine`` (the fine operator for full-resolution bounces, fitted in that pass),
+``slopes`` (the slopes of the cells it keeps flat, from their neighbours' means).
 """
 
 from ilt import lazy_face
@@ -16,5 +17,6 @@ __getattr__, __dir__, __all__ = lazy_face(
         "directory": ["ISF", "ISFError", "load_isf", "write_isf"],
         "fine": ["FineError", "FineOperator", "fit_operator", "load_fine"],
         "layout": ["sample_frame", "splat", "vector_to_image"],
+        "slopes": ["NeighbourSlopes"],
     },
 )

@@ -25,8 +25,8 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     (saturated): no coverage; weights : (N, m[, c]) the beam weights of each bounce's
     re-emitted light, ``T^-1 r_n`` (default ``L_(n+1) / t1``, the paper's; with a spill
     matrix the caller's, from the unmixed recursion, :mod:`ilt.isf.spill`).
-    neighbour_slopes : give the cells the build kept flat the limited slope of their
-    neighbours' means of each field (:mod:`ilt.isf.slopes`); False: flat, as before.
+    neighbour_slopes : give the cells the build kept flat, in each bounce image, the limited
+    slope of their neighbours' means of that bounce (:mod:`ilt.isf.slopes`); False: flat.
     Returns {"bounce-1" .. "bounce-N", "indirect", "residual", "coverage"}: (H, W[, c])
     float32 images; ``photo = bounce-1 + ... + bounce-N + residual`` at every pixel.
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
@@ -51,13 +51,20 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
             full[excluded] = 0.0 if outside is None else outside[excluded]
         return full.reshape(shape)
 
+    # flat cells: each bounce's plane from its own cell means (ilt/isf/slopes.py), so that bounce n's
+    # image gets the plane of bounce n's light; Phi_n's is the sum of the later bounces' and r_N's
+    planes = [None] * count
+    if slopes is not None:
+        later = slopes.coefficients((residual - bounces.sum(axis=0)) / area)   # r_N's
+        for n in range(count - 1, -1, -1):
+            planes[n] = later
+            if n:
+                later = later + slopes.coefficients(bounces[n] / area)
     out = {}
     previous = None
     for n in range(count):
         residual = residual - bounces[n]                               # r_(n+1)
-        terms = per_cell[:, :, n]
-        if slopes is not None:                                         # flat cells: their neighbours'
-            terms = _add_planes(terms, slopes.coefficients(residual / area))
+        terms = per_cell[:, :, n] if planes[n] is None else _add_planes(per_cell[:, :, n], planes[n])
         phi = fine.field(residual, terms, basis)                       # Phi_n
         if n == 0:
             out["bounce-1"] = image_of(flat[inside] - phi)

@@ -41,10 +41,12 @@ from ilt.workspace.options import DECOMPOSE
               help="Noise sigma of T relative to its unit columns (default: the ISF's noise.json, measured "
                    "from the beam frames by build-isf, else from T's negative entries when it has some); "
                    "blocks and series treat entries below it as zero, compressed compresses T to it.")
-@click.option("--regularise", is_flag=True,
-              help="Denoise T before inverting it: smooth its indirect part along pixels and beams, edge-aware "
-                   "(neighbours whose light differs by more than the noise are not averaged), kept when the "
-                   "change is within the noise (discrepancy principle); needs the noise level and a full grid plan.")
+@click.option("--regularise/--no-regularise", default=None,
+              help="Denoise T before inverting it: smooth its indirect part along pixels and beams (neighbouring "
+                   "cells, or the plan's grid without cells), edge-aware (neighbours whose light differs by more "
+                   "than the noise are not averaged), kept when the change is within the noise (discrepancy "
+                   "principle). Default: on when T's noise is known (build-isf's noise.json, or --noise) and "
+                   "m <= 4096; summary.json says what was done and why.")
 @stage_option(DECOMPOSE["samples_only"],
               help="Split the photo at the m samples only: skip the full-resolution bounce images "
                    "(the ISF's fine/ operator).")

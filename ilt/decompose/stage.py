@@ -80,12 +80,13 @@ def load_operator(
     solver: str = "auto",
     noise: float | None = None,
     layout: tuple[int, int] | None = None,
-    regularise: bool = False,
+    regularise: bool | None = None,
     beams: np.ndarray | None = None,
     points: np.ndarray | None = None,
     fingerprint: str | None = None,
     executor=None,
     noise_source: str = "given",
+    neighbours: np.ndarray | None = None,
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
@@ -98,8 +99,11 @@ def load_operator(
     near in the scene, far more often than neighbours on the plan's grid are: the box's
     top rank at m = 3072 is 216 by pixels, 521 by grid); without them, ``layout`` and
     ``beams`` (plan beam of each row) place the samples on the plan's grid.
-    ``regularise``: denoise T first (:mod:`ilt.transport.regularise`; needs the noise and the
-    plan ``layout``). Returns the operator and a JSON-ready dict of diagnostics with
+    ``regularise``: denoise T first (:mod:`ilt.transport.regularise`; needs the noise, and
+    ``neighbours`` or the plan's full grid ``layout``); None (auto): when it can and the
+    dense copies fit (:func:`auto_regularise`), else T as measured and why in the notes.
+    ``neighbours`` (e, 2): the samples whose cells share a pixel edge (:func:`_neighbours`),
+    which the filter smooths along instead of the plan's grid. Returns the operator and a JSON-ready dict of diagnostics with
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
     ``series`` or ``compressed`` figures of those solvers, build included).
     ``fingerprint``: T's :func:`~ilt.io.manifest.fingerprint_array` when the caller has it.
@@ -112,9 +116,15 @@ def load_operator(
     key = (fingerprint or fingerprint_array(np.asarray(T))).split(":", 1)[1] + "-lut"
     # one pass (scan_isf) checks T and measures its column norms and negative entries
     # (the noise): the IsfMatrix handed to the solver choice, the build and the
-    # diagnostics. Not made for a dense operator with the noise given, which may be in
-    # the cache: that reads T only for its fingerprint (a cache miss scans it to factorise)
-    if noise is None or regularise or solver != "dense":
+    # diagnostics. Not made for a dense operator with the noise given and T not to be
+    # regularised, which may be in the cache: that reads T only for its fingerprint (a
+    # cache miss scans it to factorise)
+    has_neighbours = neighbours is not None or (layout is not None and layout[0] * layout[1] == m)
+    # by default only with the noise known (build-isf's, from the frames, or given): negative
+    # entries of T are not all noise (a T of no physical scene has them too)
+    why_not = None if regularise else "--no-regularise" if regularise is False else \
+        auto_regularise(m, noise, has_neighbours)
+    if noise is None or why_not is None or solver != "dense":
         T = scan_isf(T)
     measured = estimate_noise(T) if noise is None else noise
     notes = {
@@ -122,17 +132,23 @@ def load_operator(
         "noise_source": noise_source if noise is not None else
         ("measured from negative entries of T" if measured is not None else "unknown (give --noise)"),
     }
-    if regularise:
-        if measured is None:
-            raise TransportError("regularising needs the noise level of T and T has no negative entries "
-                                 "to measure it from: give --noise")
-        if layout is None or layout[0] * layout[1] != m:
-            raise TransportError(f"regularising needs the plan's full grid layout; this ISF has {layout} "
-                                 f"for m = {m} (beams were dropped?)")
-        regularised, reg = regularise_isf(T, layout, measured)
+    if regularise and measured is None:
+        raise TransportError("regularising needs the noise level of T and T has no negative entries "
+                             "to measure it from: give --noise")
+    if regularise and not has_neighbours:
+        raise TransportError(f"regularising needs the ISF's cells (cells.exr) or the plan's full grid layout; "
+                             f"this ISF has no cells and layout {layout} for m = {m} (beams were dropped?)")
+    if why_not is not None:
+        if noise is None and measured is not None and why_not.startswith("its noise"):
+            why_not = ("its noise is only estimated from its negative entries, which need not all be noise "
+                       "(--regularise uses it; --noise gives it)")
+        notes.update(regularisation=f"T left as measured: {why_not}", regularisation_width=0.0)
+    else:
+        regularised, reg = regularise_isf(T, None if neighbours is not None else layout, measured, pairs=neighbours)
         T = scan_isf(regularised)  # another matrix: scanned once more
-        notes.update(regularisation=reg.describe(), regularisation_width=reg.width)
-        key += f"-reg{reg.width:g}-{measured:.3e}"
+        along = "the cells' neighbours" if neighbours is not None else "the plan's grid"
+        notes.update(regularisation=f"{reg.describe()}, along {along}", regularisation_width=reg.width)
+        key += f"-reg{reg.width:g}-{measured:.3e}" + ("-cells" if neighbours is not None else "")
     name, reason = choose_solver(T, measured) if solver == "auto" else (solver, f"asked for {solver}")
     notes.update(fingerprint="sha256:" + key.split("-")[0])
     if executor is not None and name != "compressed":
@@ -422,7 +438,7 @@ def decompose(
     force: bool = False,
     solver: str = "auto",
     noise: float | None = None,
-    regularise: bool = False,
+    regularise: bool | None = None,
     samples_only: bool = False,
     executor=None,
     spill: bool = True,
@@ -503,7 +519,8 @@ def decompose(
         try:
             op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
                                         isf.samples, fingerprint=fingerprint if spilled is None else None,
-                                        executor=executor, noise_source=noise_source)
+                                        executor=executor, noise_source=noise_source,
+                                        neighbours=_neighbours(isf) if regularise is not False else None)
         except TransportError as exc:
             raise TransportError(f"{isf.path}: {exc}") from None
         if spilled is not None:
@@ -514,7 +531,7 @@ def decompose(
                      "is taken out of T before inverting", isf.path, Q.nnz, Q.sum() / isf.m)
         verdict = _diverging(isf, op_diag, verdict, accept_non_lambertian)
         decompositions = {photo.name: _split(op, spilled, photo.values, n_bounces, tol) for photo in todo}
-        sigmas = _bounce_noise(isf, spilled, todo, decompositions, op_diag, regularise)
+        sigmas = _bounce_noise(isf, spilled, todo, decompositions, op_diag, op_diag.get("regularisation_width", 0) > 0)
         for w in op_diag["warnings"]:
             moot = sigmas is not None and w == op_diag.get("condition_warning")
             log.log(logging.INFO if moot else logging.WARNING, "%s: %s%s", isf.path, w,
@@ -661,7 +678,7 @@ def frames_noise(isf_dir) -> tuple[float | None, str]:
 
 
 def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver: str = "auto",
-                         noise: float | None = None, regularise: bool = False, samples_only: bool = False,
+                         noise: float | None = None, regularise: bool | None = None, samples_only: bool = False,
                          spill: bool = True, accept_non_lambertian: bool = False) -> dict:
     """What a photo's ``manifest.json`` records as the parameters of its decomposition:
     the options, and the fine operator and spill matrix used by their files' hashes
@@ -670,7 +687,8 @@ def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver:
     directory = Path(isf.path).parent
     manifest = directory / FINE_DIR / MANIFEST
     fine = None if samples_only or not manifest.exists() else fingerprint_file(manifest)
-    return {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise, "regularise": regularise,
+    return {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise,
+            "regularise": "auto" if regularise is None else regularise,
             "samples_only": samples_only, "fine": fine,
             "spill": fingerprint_file(directory / SPILL_FILE) if _spill_used(isf, spill) else None,
             "accept_non_lambertian": accept_non_lambertian}
@@ -756,3 +774,31 @@ def not_decomposed(out: str | os.PathLike, isf: ISF, photos: list[str | os.PathL
 
 
 __all__ = ["decompose", "read_photo", "load_operator", "InputError", "TransportError", "default_cache_dir"]
+
+
+#: ``--regularise`` by default up to this m: measured to m = 768 (docs/numerics.md), and
+#: the filter holds about five m x m float64 arrays
+AUTO_REGULARISE_MAX_M = 4096
+
+
+def auto_regularise(m: int, noise: float | None, neighbours: bool) -> str | None:
+    """Why T is not denoised by default (None: it is). It is when its noise is known
+    (measured by build-isf from the frames, or given), the samples have neighbours to
+    smooth along (cells, or the plan's full grid) and m is at most
+    :data:`AUTO_REGULARISE_MAX_M`: on the noisy sweep's flatland scans at 384 beams the
+    bounces' error fell by a quarter, and by at most 0.3% either way at 48 (docs/numerics.md)."""
+    if noise is None or not noise > 0:
+        return "its noise is unknown (build-isf measured none in the frames; --noise gives it)"
+    if not neighbours:
+        return "no cells and no full grid plan to smooth along"
+    if m > AUTO_REGULARISE_MAX_M:
+        return f"m = {m} > {AUTO_REGULARISE_MAX_M} (--regularise asks for it)"
+    return None
+
+
+def _neighbours(isf):
+    """(e, 2) the ISF's cells that share a pixel edge, or None without cells."""
+    if isf.cells is None:
+        return None
+    from ilt.isf.fine import adjacent_cells
+    return adjacent_cells(isf.cells)

@@ -72,6 +72,18 @@ def basis_terms(degree: int) -> int:
     return (degree + 1) * (degree + 2) // 2 - 1
 
 
+def adjacent_cells(labels: np.ndarray) -> np.ndarray:
+    """(e, 2) int64 pairs ``a < b`` of cells that share a pixel edge (4-neighbours), from
+    an (H, W) label image (-1 outside every cell), each pair once."""
+    labels = np.asarray(labels).astype(np.int64)
+    pairs = []
+    for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1], labels[1:])):
+        edge = (a >= 0) & (b >= 0) & (a != b)
+        pairs.append(np.stack([np.minimum(a[edge], b[edge]), np.maximum(a[edge], b[edge])], axis=1))
+    pairs = np.concatenate(pairs)
+    return np.unique(pairs, axis=0) if pairs.size else np.empty((0, 2), np.int64)
+
+
 @dataclass(frozen=True)
 class CellGeometry:
     """What the basis needs of the cells: per pixel inside a cell its label, and per cell

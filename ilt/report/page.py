@@ -177,7 +177,7 @@ def write_report(workspace: Workspace, out: str | os.PathLike | None = None, for
         body = "<h2>Impulse scatter matrix and its bounces (Fig. 5)</h2>"
         if (isf_dir / MANIFEST).exists():
             isf = load_isf(isf_dir)
-            op, op_diag = load_operator(isf.T, default_cache_dir())
+            op, op_diag = load_operator(isf.T, default_cache_dir(), regularise=False)
             matrix_panel(tmp / "fig5.png", fig5_matrices(isf.T, op))
             body += _figure("fig5.png", f"T ({isf.m} x {isf.m}), Cn T for n = 1..{FIG5_BOUNCES} and the "
                                         "indirect part T - C1 T, each in decades below its max")

@@ -95,17 +95,66 @@ def _diffuse(unit: np.ndarray, layout: tuple[int, int], weights, width: float) -
     return out
 
 
-def smooth_isf(T: np.ndarray, layout: tuple[int, int], width: float, noise: float) -> np.ndarray:
+def _pair_weights(unit: np.ndarray, pairs: np.ndarray, sigma: float, chunk: int = 256) -> np.ndarray:
+    """Weights of the neighbour ``pairs`` (e, 2) of rows of ``unit`` (m, n), as
+    :func:`_edge_weights` weighs a layout's: from the distance of the two rows less what
+    the noise explains, their own two columns (directly lit entries) left out."""
+    n = unit.shape[1]
+    expected = 2.0 * (n - 2) * sigma ** 2
+    d2 = np.empty(len(pairs))
+    for start in range(0, len(pairs), chunk):     # (chunk, n) at a time: all e x n would be 3 m^2 floats
+        a, b = pairs[start:start + chunk, 0], pairs[start:start + chunk, 1]
+        diff = unit[a] - unit[b]
+        part = np.einsum("ek,ek->e", diff, diff)
+        rows = np.arange(len(a))
+        for own in (a, b):
+            inside = own < n
+            part[inside] -= diff[rows[inside], own[inside]] ** 2
+        d2[start:start + chunk] = part
+    return np.exp(-np.maximum(d2 - expected, 0.0) / (2.0 * n * sigma ** 2 * KAPPA))
+
+
+def _diffuse_pairs(unit: np.ndarray, pairs: np.ndarray, weights: np.ndarray, width: float) -> np.ndarray:
+    """:func:`_diffuse` on a graph: each pass averages a row of ``unit`` (m, n) with the
+    rows it is paired with, the diagonal left out."""
+    import scipy.sparse
+
+    m, n = unit.shape
+    passes = math.ceil(3 * width ** 2)
+    strength = width ** 2 / (2 * passes - 4 * width ** 2)
+    a, b = pairs[:, 0], pairs[:, 1]
+    W = scipy.sparse.coo_matrix((np.concatenate([weights, weights]) * strength,
+                                 (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(m, m)).tocsr()
+    idx = np.arange(min(m, n))
+    mask = np.ones((m, n))
+    mask[idx, idx] = 0.0
+    x = unit * mask
+    den = mask + W @ mask
+    inside = mask > 0
+    for _ in range(passes):
+        x = np.divide(x + W @ x, den, out=np.zeros_like(x), where=inside)
+    x[idx, idx] = unit[idx, idx]
+    return x
+
+
+def smooth_isf(T: np.ndarray, layout: tuple[int, int] | None, width: float, noise: float,
+               pairs: np.ndarray | None = None) -> np.ndarray:
     """T (m, m) with its off-diagonal entries filtered along pixels and beams.
 
     ``layout`` (rows, cols) is the plan's layout (rows * cols = m); ``width`` is the
     diffusion's standard deviation in layout steps on a uniform region; ``noise`` is the
-    noise per entry (sigma), which sets what counts as an edge. Returns a new float64
-    array.
+    noise per entry (sigma), which sets what counts as an edge. ``pairs`` (e, 2): the
+    samples that neighbour each other instead of the layout's (an ISF's cells that share a
+    pixel edge: row i's cell holds beam i's spot, so the same pairs neighbour as pixels and
+    as beams). Returns a new float64 array.
     """
     T = np.asarray(T, dtype=np.float64)
     if width <= 0 or noise <= 0:
         return T.copy()
+    if pairs is not None:
+        pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+        pixels, beams = _pair_weights(T, pairs, noise), _pair_weights(T.T, pairs, noise)
+        return _diffuse_pairs(_diffuse_pairs(T, pairs, pixels, width).T, pairs, beams, width).T
     pixels, beams = _edge_weights(T, layout, noise), _edge_weights(T.T, layout, noise)
     return _diffuse(_diffuse(T, layout, pixels, width).T, layout, beams, width).T
 
@@ -134,8 +183,8 @@ class Regularisation:
                 f"{self.noise_norm:.3g} (discrepancy principle)")
 
 
-def regularise_isf(T: np.ndarray | IsfMatrix, layout: tuple[int, int], noise: float,
-                   width: float = WIDTH) -> tuple[np.ndarray, Regularisation]:
+def regularise_isf(T: np.ndarray | IsfMatrix, layout: tuple[int, int] | None, noise: float,
+                   width: float = WIDTH, pairs: np.ndarray | None = None) -> tuple[np.ndarray, Regularisation]:
     """Denoise T by the edge-aware filter at ``width``, kept when its change is no more
     than the noise explains (Morozov's discrepancy principle).
 
@@ -152,10 +201,10 @@ def regularise_isf(T: np.ndarray | IsfMatrix, layout: tuple[int, int], noise: fl
     isf = scan_isf(T)
     unit = isf.T / isf.norms
     m = unit.shape[0]
-    if layout[0] * layout[1] != m:
+    if pairs is None and layout[0] * layout[1] != m:
         raise ValueError(f"layout {layout} does not hold m = {m} samples")
     noise_norm = noise * np.sqrt(m * (m - 1.0))
-    candidate = smooth_isf(unit, layout, width, noise)
+    candidate = smooth_isf(unit, layout, width, noise, pairs)
     change = float(np.linalg.norm(candidate - unit))
     tried = [(0.0, 0.0), (width, change)]
     if width > 0 and noise > 0 and change <= noise_norm:

@@ -250,15 +250,18 @@ def test_decompose_solver_noise_and_regularisation(isf_dir, tmp_path):
         (noisy / name).write_bytes((isf_dir / name).read_bytes())
     T = np.load(isf_dir / "T.npy")
     np.save(noisy / "T.npy", T + 1e-2 * np.random.default_rng(0).normal(size=T.shape))
-    errors = {}
-    for flag in ([], ["--regularise"]):
-        out = tmp_path / ("reg" if flag else "plain")
-        result = run("decompose", "--isf", noisy, photo, "-o", out, "--no-cache", "--bounces", 4, *flag, "--json")
-        ops = json.loads(result.stdout)[0]["operators"]
-        assert ops["noise"] == pytest.approx(1e-2, rel=0.3) and "measured" in ops["noise_source"]
-        errors[bool(flag)] = relative_errors(np.load(out / "room" / "bounces.npy"), truth[:4]).max()
-    assert ops["regularisation_width"] > 0
-    assert errors[True] < errors[False]
+    # (by default only with the noise known, not estimated from T's negative entries)
+    errors, ops = {}, {}
+    for flags in (["--no-regularise"], ["--regularise"], [], ["--noise", "1e-2"]):
+        out = tmp_path / ("_".join(flags) or "default")
+        result = run("decompose", "--isf", noisy, photo, "-o", out, "--no-cache", "--bounces", 4, *flags, "--json")
+        ops[tuple(flags)] = json.loads(result.stdout)[0]["operators"]
+        errors[tuple(flags)] = relative_errors(np.load(out / "room" / "bounces.npy"), truth[:4]).max()
+    assert ops[()]["noise"] == pytest.approx(1e-2, rel=0.3) and "negative entries" in ops[()]["noise_source"]
+    assert ops[()]["regularisation_width"] == 0 and "only estimated" in ops[()]["regularisation"]
+    assert ops[("--no-regularise",)]["regularisation_width"] == 0 and errors[()] == errors[("--no-regularise",)]
+    assert ops[("--regularise",)]["regularisation_width"] > 0 and ops[("--noise", "1e-2")]["regularisation_width"] > 0
+    assert max(errors[("--regularise",)], errors[("--noise", "1e-2")]) < errors[()]
 
 
 def test_progress_in_a_log_is_a_line_every_tenth(caplog):

@@ -131,11 +131,12 @@ def test_build_isf_carries_the_noise_into_t_and_decompose_uses_it(tmp_path):
     operator = summary["operators"]
     assert operator["noise"] == pytest.approx(record["entry_sigma"])
     assert NOISE_FILE in operator["noise_source"]
-    # and --regularise needs no --noise: it takes the measured one
-    run("decompose", "--isf", tmp_path / "isf", sim / "photos" / "room.exr", "-o", tmp_path / "reg", "--no-cache",
-        "--regularise")
-    regularised = json.loads((tmp_path / "reg" / "room" / "summary.json").read_text())["operators"]
-    assert regularised["noise"] == pytest.approx(record["entry_sigma"]) and "regularisation" in regularised
+    # and with the noise measured, T is denoised by default, along the cells' neighbours
+    assert operator["regularisation_width"] > 0 and "along the cells' neighbours" in operator["regularisation"]
+    run("decompose", "--isf", tmp_path / "isf", sim / "photos" / "room.exr", "-o", tmp_path / "plain", "--no-cache",
+        "--no-regularise")
+    plain = json.loads((tmp_path / "plain" / "room" / "summary.json").read_text())["operators"]
+    assert plain["noise"] == pytest.approx(record["entry_sigma"]) and plain["regularisation_width"] == 0
 
 
 def _two_cells(rng, slope, pixel_sigma):

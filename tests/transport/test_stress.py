@@ -171,6 +171,30 @@ def test_edge_aware_filter_keeps_a_facet_edge():
     assert blind[same].mean() > 10 * abs(out[same].mean())
 
 
+def test_edge_aware_filter_on_pairs_is_the_grid_filter_on_the_grid_pairs():
+    """The filter along neighbour pairs (an ISF's cells that share an edge) is the layout
+    filter when the pairs are the layout's own: the same entries to rounding, on a
+    T with a facet edge (the weights) and noise; and a pair list in any order and either
+    orientation gives the same."""
+    from ilt.transport.regularise import smooth_isf
+
+    rows, cols = 6, 5
+    m = rows * cols
+    index = np.arange(m).reshape(rows, cols)
+    pairs = np.concatenate([np.stack([index[:-1].ravel(), index[1:].ravel()], 1),
+                            np.stack([index[:, :-1].ravel(), index[:, 1:].ravel()], 1)])
+    rng = np.random.default_rng(2)
+    facet = np.arange(m) // (m // 2)
+    T = np.where(facet[:, None] != facet[None, :], 0.03, 0.0) + 2e-3 * rng.normal(size=(m, m))
+    T[np.arange(m), np.arange(m)] = 1.0
+    grid = smooth_isf(T, (rows, cols), 1.0, 2e-3)
+    assert np.allclose(smooth_isf(T, None, 1.0, 2e-3, pairs=pairs), grid, rtol=1e-12, atol=1e-13)
+    shuffled = pairs[rng.permutation(len(pairs))]
+    shuffled[::2] = shuffled[::2, ::-1]
+    assert np.allclose(smooth_isf(T, None, 1.0, 2e-3, pairs=shuffled), grid, rtol=1e-12, atol=1e-13)
+    assert not np.allclose(grid, T)
+
+
 def test_bias_against_variance_of_regularisation():
     """Over noise draws, plain inversion is (nearly) unbiased with the noise's spread;
     wider filters trade spread for bias: spread falls and bias rises with the width,

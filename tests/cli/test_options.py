@@ -20,7 +20,7 @@ COMMANDS = {
                   "--large-factor", "--max-area", "--saturation", "--roi", "--refine", "-j/--workers", "--scheduler",
                   "--scheduler-file", "--insecure", "-w/--workspace", "--force", "--json"],
     "decompose": ["INPUTS", "--isf", "-o/--output", "--bounces", "--tol", "--cache-dir", "--no-cache", "--solver",
-                  "--noise", "--regularise", "--samples-only", "--accept-non-lambertian", "--no-spill", "--scheduler", "--scheduler-file", "--insecure",
+                  "--noise", "--regularise/--no-regularise", "--samples-only", "--accept-non-lambertian", "--no-spill", "--scheduler", "--scheduler-file", "--insecure",
                   "-w/--workspace", "--force", "--json"],
     "demo": ["-o/--output", "--quick", "--force", "--json"],
     "merge": ["INPUTS", "-o/--output", "--bracket", "--times", "--dark", "--response", "--gain", "--read-noise",

@@ -126,13 +126,19 @@ def _diffuse_pairs(unit: np.ndarray, pairs: np.ndarray, weights: np.ndarray, wid
     W = scipy.sparse.coo_matrix((np.concatenate([weights, weights]) * strength,
                                  (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(m, m)).tocsr()
     idx = np.arange(min(m, n))
-    mask = np.ones((m, n))
-    mask[idx, idx] = 0.0
-    x = unit * mask
-    den = mask + W @ mask
-    inside = mask > 0
+    x = np.array(unit, dtype=np.float64, order="C")
+    x[idx, idx] = 0.0                               # left out: each entry's mask is 1 but the diagonal's
+    # the normalisation, mask + W mask, with the mask 1 but on the diagonal: 1 + (row sum of W)
+    # less W's entry of the row whose entry is left out
+    den = np.asarray(W.sum(axis=1)).reshape(m, 1) + np.ones((m, n))
+    den[:, :idx.size] -= W[:, :idx.size].toarray()
+    den[idx, idx] = 1.0                             # >= 1 everywhere else: no entry divides by 0
     for _ in range(passes):
-        x = np.divide(x + W @ x, den, out=np.zeros_like(x), where=inside)
+        y = W @ x
+        y += x
+        y /= den
+        y[idx, idx] = 0.0
+        x = y
     x[idx, idx] = unit[idx, idx]
     return x
 
@@ -153,8 +159,11 @@ def smooth_isf(T: np.ndarray, layout: tuple[int, int] | None, width: float, nois
         return T.copy()
     if pairs is not None:
         pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-        pixels, beams = _pair_weights(T, pairs, noise), _pair_weights(T.T, pairs, noise)
-        return _diffuse_pairs(_diffuse_pairs(T, pairs, pixels, width).T, pairs, beams, width).T
+        columns = np.ascontiguousarray(T.T)        # rows gathered from contiguous memory, both ways
+        pixels, beams = _pair_weights(T, pairs, noise), _pair_weights(columns, pairs, noise)
+        del columns
+        along = _diffuse_pairs(T, pairs, pixels, width)
+        return _diffuse_pairs(np.ascontiguousarray(along.T), pairs, beams, width).T
     pixels, beams = _edge_weights(T, layout, noise), _edge_weights(T.T, layout, noise)
     return _diffuse(_diffuse(T, layout, pixels, width).T, layout, beams, width).T
 

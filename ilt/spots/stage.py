@@ -1,8 +1,9 @@
 """The centroids stage (``ilt centroids``): the spot of every beam of a merged or raw
 capture, in chunks over the pool, with the spots table, the sum of all frames
 (``sum.exr``), per pixel the largest local mean over the frames (``peak.exr``: what one
-beam lights; both feed build-isf's lit test) and an overlay of the spots on it
-(``overlay.png``).
+beam lights; both feed build-isf's lit test), the sum with each frame's own spot taken out
+(``sum-indirect.exr``: the scan's indirect light, for the lit test's silhouettes) and an
+overlay of the spots on it (``overlay.png``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,10 @@ SUM_FILE = "sum.exr"
 #: per pixel, the largest over the beam frames of its PEAK_SMOOTH x PEAK_SMOOTH mean
 PEAK_FILE = "peak.exr"
 PEAK_SMOOTH = 5
+#: the sum of the beam frames, each without the disc of its own spot (SPOT_SIGMAS x the
+#: spot's sigma): the scan's indirect light, for build-isf's silhouette test
+INDIRECT_SUM_FILE = "sum-indirect.exr"
+SPOT_SIGMAS = 3.0
 
 OVERLAY_FILE = "overlay.png"
 
@@ -42,7 +47,7 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
     """
     from scipy.ndimage import uniform_filter
 
-    spots, total, peak, mapping, kept = [], None, None, None, []
+    spots, total, peak, indirect, mapping, kept = [], None, None, None, None, []
     fd = scratch.open(write=True) if scratch is not None else None
     try:
         for beam, source in zip(beams, sources):
@@ -52,14 +57,18 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
                 # float32 within a chunk (16 frames: a few ulp), float64 across chunks
                 total, mapping = np.zeros(frame.shape, np.float32), own
                 peak = np.full(frame.shape, -np.inf, np.float32)
+                indirect = np.zeros(frame.shape, np.float32)
             elif frame.shape != total.shape or own != mapping:
                 from ilt.io.frames import FrameError
 
                 raise FrameError(f"{source}: beam {beam}: frame of {frame.shape[1]} x {frame.shape[0]} pixels "
                                  f"({own.as_dict()}) differs from beam {beams[0]}'s")
             grid_params = _grid_parameters(params, own, saturation)
-            spots.append(_to_full_frame(find_spot(frame, grid_params), own))
+            spot = find_spot(frame, grid_params)
+            spots.append(_to_full_frame(spot, own))
             total += frame
+            indirect += frame
+            _take_spot(indirect, frame, spot, grid_params.threshold)
             np.maximum(peak, uniform_filter(frame.astype(np.float32, copy=False), PEAK_SMOOTH, mode="nearest"),
                        out=peak)
             if fd is not None:
@@ -71,7 +80,26 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
     finally:
         if fd is not None:
             os.close(fd)
-    return spots, total, peak, mapping, kept  # float32: half the bytes back to the caller
+    return spots, total, peak, indirect, mapping, kept  # float32: half the bytes back to the caller
+
+
+def _take_spot(indirect: np.ndarray, frame: np.ndarray, spot: Spot, threshold: float) -> None:
+    """Take ``frame``'s pixels within :data:`SPOT_SIGMAS` sigmas of its ``spot`` (frame grid;
+    sigma from the spot's area over its threshold, as :func:`ilt.spots.find.find_spot`
+    has it, and at least 0.5 px) back out of ``indirect``: what is left of the frame is its
+    indirect light. No spot (NaN): nothing taken."""
+    if not (np.isfinite(spot.x) and np.isfinite(spot.y)) or spot.area <= 0:
+        return
+    sigma = max(0.5, float(np.sqrt(spot.area / np.pi) / np.sqrt(2 * np.log(1 / threshold))))
+    radius = SPOT_SIGMAS * sigma
+    height, width = frame.shape[:2]
+    x0, x1 = max(0, int(np.floor(spot.x - radius))), min(width, int(np.ceil(spot.x + radius)) + 1)
+    y0, y1 = max(0, int(np.floor(spot.y - radius))), min(height, int(np.ceil(spot.y + radius)) + 1)
+    if x0 >= x1 or y0 >= y1:
+        return
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    disc = np.hypot(xx - spot.x, yy - spot.y) <= radius
+    indirect[y0:y1, x0:x1][disc] -= frame[y0:y1, x0:x1][disc]
 
 
 def _keep_frame(scratch, fd: int, beam: int, frame: np.ndarray) -> bool:
@@ -221,17 +249,19 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
     tasks = [(c, [sources[b] for b in c], reader, params, str(dark) if dark else None, default_mapping,
               scratch) for c in chunks(beams, chunk)]
     spots: list[Spot] = []
-    total, peak, mapping, kept = None, None, None, []
+    total, peak, indirect, mapping, kept = None, None, None, None, []
     with beam_executor(executor, workers) as ex:
-        for c, (chunk_spots, chunk_total, chunk_peak, chunk_mapping, chunk_kept) in zip(
+        for c, (chunk_spots, chunk_total, chunk_peak, chunk_indirect, chunk_mapping, chunk_kept) in zip(
                 (t[0] for t in tasks), run_chunks(_centroid_chunk, tasks, ex, progress=progress)):
             if total is None:
                 total, peak, mapping = chunk_total.astype(np.float64), chunk_peak, chunk_mapping
+                indirect = chunk_indirect.astype(np.float64)
             elif chunk_total.shape != total.shape or chunk_mapping != mapping:
                 raise SpotsError(f"{sources[c[0]]}: beam {c[0]}: frame of {chunk_total.shape[1]} x "
                                  f"{chunk_total.shape[0]} pixels differs from beam 0's")
             else:
                 total += chunk_total
+                indirect += chunk_indirect
                 np.maximum(peak, chunk_peak, out=peak)
             spots.extend(chunk_spots)
             kept.extend(chunk_kept)
@@ -247,6 +277,9 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
         write_exr(tmp / SUM_FILE, total, attributes={"ilt:quantity": "sum of beam frames", **mapping.attributes()})
         write_exr(tmp / PEAK_FILE, peak, attributes={
             "ilt:quantity": f"largest over the beam frames of the {PEAK_SMOOTH} x {PEAK_SMOOTH} mean",
+            **mapping.attributes()})
+        write_exr(tmp / INDIRECT_SUM_FILE, indirect, attributes={
+            "ilt:quantity": f"sum of beam frames, each without its spot's disc ({SPOT_SIGMAS:g} sigma)",
             **mapping.attributes()})
         draw_overlay(tmp / OVERLAY_FILE, total, spots, mapping)
         parameters = {k: v for k, v in asdict(params).items()}

@@ -131,6 +131,25 @@ def test_noise_free_frames_light_the_indirect_light_between_sparse_spots():
     assert not (lit_mask(frame_sum, spots, 1e-3)[0] & (frame_sum < 1.0)).any()
 
 
+def test_a_silhouette_is_judged_on_the_indirect_light_not_the_spots():
+    """An object's edge column of whole pixels (indirect light 1) next to the background,
+    with two spots (peak 200, sigma 1 px) two pixels inside it: in the sum, the spots
+    raise the median about some edge pixels past twice their light, and they read as
+    partly background; judged on the sum without the spots (centroids' sum-indirect.exr)
+    none does. The column the edge cuts (30% of each pixel) is left out either way."""
+    from ilt.isf.build import _silhouette
+
+    yy, xx = np.mgrid[0:24, 0:30].astype(np.float64)
+    inside = (xx >= 5) & (xx < 25)
+    indirect = np.where(inside, 1.0, 0.0)
+    indirect[:, 24] *= 0.3
+    direct = sum(200.0 * np.exp(-((xx - 7.0) ** 2 + (yy - y) ** 2) / 2) for y in (9.0, 15.0)) * inside
+    total = indirect + direct
+    assert _silhouette(total)[:, 5].sum() >= 3                      # whole pixels taken for an edge
+    np.testing.assert_array_equal(_silhouette(total, indirect)[:, 5], np.zeros(24, bool))
+    assert _silhouette(total)[:, 24].all() and _silhouette(total, indirect)[:, 24].all()
+
+
 def test_the_lit_test_sees_faint_light_below_a_pixels_noise_and_stops_at_its_edge(monkeypatch):
     """A sum of noisy frames (sigma 8 a pixel): a bright square where the spots are, inside
     a plateau of faint light, 0.3 sigma a pixel (1.5 sigma of the 5 x 5 mean: the light

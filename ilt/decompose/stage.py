@@ -40,7 +40,7 @@ from ilt.isf.directory import ISF
 from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
 from ilt.isf.lambertian import LAMBERTIAN_FILE, read_lambertian
 from ilt.isf.layout import sample_frame, splat, vector_to_image
-from ilt.isf.noise import NOISE_FILE, read_noise
+from ilt.isf.noise import NOISE_FILE, T_VAR_FILE, read_noise
 from ilt.isf.spill import SPILL_FILE, Unmixing
 from ilt.transport.compressed import grid_points
 from ilt.transport.diagnostics import decomposition_diagnostics, operator_diagnostics
@@ -87,6 +87,7 @@ def load_operator(
     executor=None,
     noise_source: str = "given",
     neighbours: np.ndarray | None = None,
+    variance: np.ndarray | None = None,
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
@@ -103,7 +104,9 @@ def load_operator(
     ``neighbours`` or the plan's full grid ``layout``); None (auto): when it can and the
     dense copies fit (:func:`auto_regularise`), else T as measured and why in the notes.
     ``neighbours`` (e, 2): the samples whose cells share a pixel edge (:func:`_neighbours`),
-    which the filter smooths along instead of the plan's grid. Returns the operator and a JSON-ready dict of diagnostics with
+    which the filter smooths along instead of the plan's grid, at the width of least
+    estimated risk (:func:`~ilt.transport.regularise.choose_width`) given ``variance``
+    (m, m), each unit-column entry's (build-isf's ``T_var.npy``), else ``noise`` squared. Returns the operator and a JSON-ready dict of diagnostics with
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
     ``series`` or ``compressed`` figures of those solvers, build included).
     ``fingerprint``: T's :func:`~ilt.io.manifest.fingerprint_array` when the caller has it.
@@ -144,7 +147,8 @@ def load_operator(
                        "(--regularise uses it; --noise gives it)")
         notes.update(regularisation=f"T left as measured: {why_not}", regularisation_width=0.0)
     else:
-        regularised, reg = regularise_isf(T, None if neighbours is not None else layout, measured, pairs=neighbours)
+        regularised, reg = regularise_isf(T, None if neighbours is not None else layout, measured, width=None,
+                                          pairs=neighbours, variance=variance)
         T = scan_isf(regularised)  # another matrix: scanned once more
         along = "the cells' neighbours" if neighbours is not None else "the plan's grid"
         notes.update(regularisation=f"{reg.describe()}, along {along}", regularisation_width=reg.width)
@@ -520,7 +524,8 @@ def decompose(
             op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
                                         isf.samples, fingerprint=fingerprint if spilled is None else None,
                                         executor=executor, noise_source=noise_source,
-                                        neighbours=_neighbours(isf) if regularise is not False else None)
+                                        neighbours=_neighbours(isf) if regularise is not False else None,
+                                        variance=_entry_variance(isf) if noise_source != "given" else None)
         except TransportError as exc:
             raise TransportError(f"{isf.path}: {exc}") from None
         if spilled is not None:
@@ -794,6 +799,16 @@ def auto_regularise(m: int, noise: float | None, neighbours: bool) -> str | None
     if m > AUTO_REGULARISE_MAX_M:
         return f"m = {m} > {AUTO_REGULARISE_MAX_M} (--regularise asks for it)"
     return None
+
+
+def _entry_variance(isf) -> np.ndarray | None:
+    """(m, m) the variance of each unit-column entry of T as build-isf measured it from the
+    frames (``T_var.npy``, memory-mapped), or None."""
+    path = Path(isf.path).parent / T_VAR_FILE
+    if not path.exists():
+        return None
+    variance = np.load(path, mmap_mode="r")
+    return variance if variance.shape == (isf.m, isf.m) else None
 
 
 def _neighbours(isf):

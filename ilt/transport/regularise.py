@@ -39,6 +39,15 @@ from ilt.transport.scan import IsfMatrix, scan_isf
 WIDTHS = (0.0, 0.25, 0.5, 0.82, 1.0, 1.41, 2.0)
 #: the width regularise_isf applies: two passes of the diffusion (measured: docs/numerics.md)
 WIDTH = 0.82
+#: the widths regularise_isf chooses among when not given one (:func:`choose_width`)
+CHOICES = (0.82, 1.0, 1.41)
+#: the choice counts the filter's bias^2 this many times its noise (measured on the noisy
+#: sweep: docs/numerics.md)
+BIAS_WEIGHT = 3.0
+#: the filter's diagonal and row norms are measured exactly (the filter of the identity) up
+#: to this many samples, else from PROBES random sign vectors (:func:`choose_width`)
+PROBE_EXACT_M = 1024
+PROBES = 128
 #: edge sensitivity: the weight of a neighbour pair falls by e for every kappa x the noise's
 #: expected squared distance that their rows' distance exceeds it by
 KAPPA = 0.25
@@ -64,15 +73,17 @@ def _edge_weights(unit: np.ndarray, layout: tuple[int, int], sigma: float) -> tu
     return weights[0], weights[1]
 
 
-def _diffuse(unit: np.ndarray, layout: tuple[int, int], weights, width: float) -> np.ndarray:
+def _diffuse(unit: np.ndarray, layout: tuple[int, int], weights, width: float,
+             skip_diagonal: bool = True) -> np.ndarray:
     """Edge-aware diffusion of ``unit`` (m, n) along its first index in the layout, to a
-    standard deviation of ``width`` steps on a uniform region, the diagonal left out."""
+    standard deviation of ``width`` steps on a uniform region, the diagonal left out
+    (``skip_diagonal``: else every entry is filtered alike, as a probe of the filter)."""
     rows, cols = layout
     m, n = unit.shape
     passes = math.ceil(3 * width ** 2)  # each pass at strength <= 0.5 spreads by <= 1/3 step^2
     strength = width ** 2 / (2 * passes - 4 * width ** 2)  # variance per pass 2s / (1 + 4s)
     down, right = (strength * w[..., None] for w in weights)
-    idx = np.arange(min(m, n))
+    idx = np.arange(min(m, n) if skip_diagonal else 0)
     mask = np.ones((m, n))
     mask[idx, idx] = 0.0
     mask = mask.reshape(rows, cols, n)
@@ -114,9 +125,10 @@ def _pair_weights(unit: np.ndarray, pairs: np.ndarray, sigma: float, chunk: int 
     return np.exp(-np.maximum(d2 - expected, 0.0) / (2.0 * n * sigma ** 2 * KAPPA))
 
 
-def _diffuse_pairs(unit: np.ndarray, pairs: np.ndarray, weights: np.ndarray, width: float) -> np.ndarray:
+def _diffuse_pairs(unit: np.ndarray, pairs: np.ndarray, weights: np.ndarray, width: float,
+                   skip_diagonal: bool = True) -> np.ndarray:
     """:func:`_diffuse` on a graph: each pass averages a row of ``unit`` (m, n) with the
-    rows it is paired with, the diagonal left out."""
+    rows it is paired with, the diagonal left out (unless not ``skip_diagonal``)."""
     import scipy.sparse
 
     m, n = unit.shape
@@ -125,22 +137,43 @@ def _diffuse_pairs(unit: np.ndarray, pairs: np.ndarray, weights: np.ndarray, wid
     a, b = pairs[:, 0], pairs[:, 1]
     W = scipy.sparse.coo_matrix((np.concatenate([weights, weights]) * strength,
                                  (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(m, m)).tocsr()
-    idx = np.arange(min(m, n))
+    idx = np.arange(min(m, n) if skip_diagonal else 0)
     x = np.array(unit, dtype=np.float64, order="C")
     x[idx, idx] = 0.0                               # left out: each entry's mask is 1 but the diagonal's
     # the normalisation, mask + W mask, with the mask 1 but on the diagonal: 1 + (row sum of W)
     # less W's entry of the row whose entry is left out
-    den = np.asarray(W.sum(axis=1)).reshape(m, 1) + np.ones((m, n))
-    den[:, :idx.size] -= W[:, :idx.size].toarray()
-    den[idx, idx] = 1.0                             # >= 1 everywhere else: no entry divides by 0
+    scale = np.empty((m, n))
+    scale[:] = np.asarray(W.sum(axis=1)).reshape(m, 1) + 1.0
+    pair = W.tocoo()                                # its entries: in the columns that hold a diagonal
+    inside = pair.col < idx.size
+    scale[pair.row[inside], pair.col[inside]] -= pair.data[inside]
+    scale[idx, idx] = 1.0                           # >= 1 everywhere else: no entry divides by 0
+    np.reciprocal(scale, out=scale)                 # once: each pass multiplies
     for _ in range(passes):
         y = W @ x
         y += x
-        y /= den
+        y *= scale
         y[idx, idx] = 0.0
         x = y
     x[idx, idx] = unit[idx, idx]
     return x
+
+
+def _filter(unit: np.ndarray, layout: tuple[int, int] | None, noise: float, pairs: np.ndarray | None):
+    """``(along_pixels, along_beams)``: each ``f(x, width, skip_diagonal=True)`` diffuses
+    ``x`` (m, k) along its first index to ``width``, with the edge weights of ``unit``
+    between its rows (pixels) or its columns (beams), measured once: a further width, or a
+    probe of the filter (``skip_diagonal=False``: no entry left out), goes through the
+    same linear filter."""
+    if pairs is not None:
+        columns = np.ascontiguousarray(unit.T)      # rows gathered from contiguous memory, both ways
+        pixels, beams = _pair_weights(unit, pairs, noise), _pair_weights(columns, pairs, noise)
+        del columns
+        return (lambda x, width, skip_diagonal=True: _diffuse_pairs(x, pairs, pixels, width, skip_diagonal),
+                lambda x, width, skip_diagonal=True: _diffuse_pairs(x, pairs, beams, width, skip_diagonal))
+    pixels, beams = _edge_weights(unit, layout, noise), _edge_weights(unit.T, layout, noise)
+    return (lambda x, width, skip_diagonal=True: _diffuse(x, layout, pixels, width, skip_diagonal),
+            lambda x, width, skip_diagonal=True: _diffuse(x, layout, beams, width, skip_diagonal))
 
 
 def smooth_isf(T: np.ndarray, layout: tuple[int, int] | None, width: float, noise: float,
@@ -159,13 +192,78 @@ def smooth_isf(T: np.ndarray, layout: tuple[int, int] | None, width: float, nois
         return T.copy()
     if pairs is not None:
         pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-        columns = np.ascontiguousarray(T.T)        # rows gathered from contiguous memory, both ways
-        pixels, beams = _pair_weights(T, pairs, noise), _pair_weights(columns, pairs, noise)
-        del columns
-        along = _diffuse_pairs(T, pairs, pixels, width)
-        return _diffuse_pairs(np.ascontiguousarray(along.T), pairs, beams, width).T
-    pixels, beams = _edge_weights(T, layout, noise), _edge_weights(T.T, layout, noise)
-    return _diffuse(_diffuse(T, layout, pixels, width).T, layout, beams, width).T
+    along_pixels, along_beams = _filter(T, layout, noise, pairs)
+    return along_beams(np.ascontiguousarray(along_pixels(T, width).T), width).T
+
+
+def choose_width(unit: np.ndarray, layout: tuple[int, int] | None, noise: float,
+                 variance: np.ndarray | None = None, pairs: np.ndarray | None = None,
+                 widths=CHOICES, seed: int = 0) -> tuple[np.ndarray, float, list]:
+    """The filtered unit-column T at the width of least estimated risk, that width (0:
+    none has less than T as measured) and the table of (width, change, risk, bias^2,
+    variance), all relative to T's total noise variance.
+
+    The risk of each width is Stein's unbiased estimate of ``||T_w - T_true||^2`` (SURE:
+    ``||T_w - T||^2 - sum V + 2 sum V dT_w/dT``), the filter taken as linear with T's
+    edge weights and separable, ``T_w = P T B^T`` (P along pixels, B along beams), so
+    that the divergence is ``sum V_ij P_ii B_jj`` and the filtered noise
+    ``sum V_kl |P_k|^2 |B_l|^2``: the diagonals and row norms of P and B, exact (the
+    filter of the identity) up to :data:`PROBE_EXACT_M` samples, else from
+    :data:`PROBES` random sign vectors (Hutchinson's estimator; seeded: the same T gets
+    the same width). ``V`` (m, m): each entry's variance (T_var.npy), else ``noise**2``.
+    The rest of the risk is the filter's bias^2, which counts :data:`BIAS_WEIGHT` times:
+    a filter's bias is alike along a row of T and adds up in the bounces, where its noise
+    averages out. Widths are reached one from the next (diffusions add their
+    variances), so the widest one's passes are all the cost. A width whose change to T
+    is past the noise (the discrepancy principle, ``||T_w - T||^2 > sum V``) is not taken.
+    """
+    m = unit.shape[0]
+    if pairs is not None:
+        pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    along_pixels, along_beams = _filter(unit, layout, noise, pairs)
+    if m <= PROBE_EXACT_M:
+        probe = np.eye(m)
+        scale = 1.0
+    else:
+        probe = np.random.default_rng(seed).choice([-1.0, 1.0], size=(m, PROBES))
+        scale = 1.0 / PROBES
+    if variance is None:
+        total = noise ** 2 * m * (m - 1.0)
+
+        def weighted(a, b):      # sum over i != j of V_ij a_i b_j
+            return noise ** 2 * (a.sum() * b.sum() - a @ b)
+    else:
+        diagonal = np.array(np.diagonal(variance), dtype=np.float64)
+        total = float(np.sum(variance, dtype=np.float64) - diagonal.sum())
+
+        def weighted(a, b):
+            return float(a @ np.asarray(variance @ b, dtype=np.float64) - np.sum(diagonal * a * b))
+    total = max(total, np.finfo(float).tiny)
+    # T and its transpose alternate (the two filters commute): one transpose a width
+    x, flipped, measured = unit, False, (unit, np.ascontiguousarray(unit.T))
+    p, b, previous = probe, probe, 0.0
+    best, best_risk, best_x = 0.0, 1.0, unit
+    table = []
+    for width in sorted(widths):
+        delta = math.sqrt(width ** 2 - previous ** 2)
+        previous = width
+        first, second = (along_beams, along_pixels) if flipped else (along_pixels, along_beams)
+        x = second(np.ascontiguousarray(first(x, delta).T), delta)
+        flipped = not flipped
+        p, b = along_pixels(p, delta, False), along_beams(b, delta, False)
+        fit = float(np.sum((x - measured[flipped]) ** 2))      # the diagonal is put back: 0 there
+        divergence = weighted(scale * np.sum(probe * p, axis=1), scale * np.sum(probe * b, axis=1))
+        spread = weighted(scale * np.sum(p ** 2, axis=1), scale * np.sum(b ** 2, axis=1))
+        bias = fit - total + 2.0 * divergence - spread
+        risk = (BIAS_WEIGHT * bias + spread) / total
+        # the discrepancy principle as a guard: a change past the noise removes more than noise
+        guarded = fit > total
+        table.append({"width": width, "change": math.sqrt(fit), "risk": risk, "bias2": bias / total,
+                      "variance": spread / total, "past_the_noise": guarded})
+        if risk < best_risk and not guarded:
+            best, best_risk, best_x = width, risk, (x.T if flipped else x)
+    del measured
+    return np.array(best_x, dtype=np.float64), best, table
 
 
 @dataclass(frozen=True)
@@ -174,15 +272,26 @@ class Regularisation:
 
     width: the filter width (0 = T left as measured); change: ``||T_w - T||_F`` of
     the unit-column T; noise_norm: ``sigma sqrt(m (m - 1))``, the change noise
-    explains; tried: (width, change) for every candidate.
+    explains; tried: (width, change) for every candidate; risks: the table of
+    :func:`choose_width` when the width was chosen (None: given).
     """
 
     width: float
     change: float
     noise_norm: float
     tried: list
+    risks: list | None = None
 
     def describe(self) -> str:
+        if self.risks is not None:
+            widths = "/".join(f"{row['width']:g}" for row in self.risks)
+            if self.width == 0:
+                return (f"T left as measured: no width of the edge-aware filter ({widths}) has an estimated "
+                        f"risk below T's own noise within the discrepancy principle")
+            risk = next(row["risk"] for row in self.risks if row["width"] == self.width)
+            return (f"T filtered edge-aware, width {self.width:g} (layout steps) of {widths}: the least estimated "
+                    f"risk, {risk:.2f} of T's noise (SURE, bias counted {BIAS_WEIGHT:g}x); change "
+                    f"{self.change:.3g} <= noise {self.noise_norm:.3g} (discrepancy principle)")
         if self.width == 0:
             if len(self.tried) > 1 and self.noise_norm > 0:
                 return (f"T left as measured: the edge-aware filter (width {self.tried[1][0]:g}) changes it by "
@@ -193,9 +302,12 @@ class Regularisation:
 
 
 def regularise_isf(T: np.ndarray | IsfMatrix, layout: tuple[int, int] | None, noise: float,
-                   width: float = WIDTH, pairs: np.ndarray | None = None) -> tuple[np.ndarray, Regularisation]:
+                   width: float | None = WIDTH, pairs: np.ndarray | None = None,
+                   variance: np.ndarray | None = None) -> tuple[np.ndarray, Regularisation]:
     """Denoise T by the edge-aware filter at ``width``, kept when its change is no more
-    than the noise explains (Morozov's discrepancy principle).
+    than the noise explains (Morozov's discrepancy principle); ``width=None``: at the
+    width of least estimated risk (:func:`choose_width`, with ``variance`` (m, m) the
+    entries' own when known).
 
     Parameters
     ----------
@@ -213,6 +325,14 @@ def regularise_isf(T: np.ndarray | IsfMatrix, layout: tuple[int, int] | None, no
     if pairs is None and layout[0] * layout[1] != m:
         raise ValueError(f"layout {layout} does not hold m = {m} samples")
     noise_norm = noise * np.sqrt(m * (m - 1.0))
+    if width is None:
+        if not noise > 0:
+            return unit, Regularisation(width=0.0, change=0.0, noise_norm=float(noise_norm), tried=[(0.0, 0.0)])
+        filtered, chosen, table = choose_width(unit, layout, noise, variance, pairs)
+        tried = [(0.0, 0.0)] + [(row["width"], row["change"]) for row in table]
+        change = next((row["change"] for row in table if row["width"] == chosen), 0.0)
+        return filtered, Regularisation(width=chosen, change=change, noise_norm=float(noise_norm), tried=tried,
+                                        risks=table)
     candidate = smooth_isf(unit, layout, width, noise, pairs)
     change = float(np.linalg.norm(candidate - unit))
     tried = [(0.0, 0.0), (width, change)]

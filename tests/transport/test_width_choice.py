@@ -1,0 +1,77 @@
+"""The regularisation's width, chosen by its estimated risk (ilt.transport.regularise.choose_width)."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from ilt.isf.fine import adjacent_cells
+from ilt.transport import regularise as R
+
+
+def _scene(m: int = 300, seed: int = 1):
+    """A unit-column T over m spots on a grid of Voronoi cells (a 160 x 120 frame): indirect
+    light falling with distance, 1.5x brighter on the right half (an edge); the cells' pairs."""
+    side = int(np.ceil(np.sqrt(m * 4 / 3)))
+    xs, ys = np.meshgrid(np.linspace(2, 158, side), np.linspace(2, 118, int(np.ceil(m / side))))
+    spots = np.stack([xs.ravel(), ys.ravel()], axis=1)[:m]
+    yy, xx = np.mgrid[0:120, 0:160]
+    labels = cKDTree(spots).query(np.stack([xx.ravel(), yy.ravel()], axis=1))[1].reshape(120, 160)
+    d = np.linalg.norm(spots[:, None] - spots[None], axis=2)
+    T = 0.3 / m * np.exp(-d / 50.0) * (1.0 + 0.5 * (spots[:, 0][:, None] > 80))
+    np.fill_diagonal(T, 1.0)
+    return T / np.linalg.norm(T, axis=0), np.asarray(adjacent_cells(labels), np.int64)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return _scene()
+
+
+def _noisy(T, sigma, seed=0):
+    """T plus noise of a known variance per entry (0.5 to 1.5 sigma^2), its diagonal exact."""
+    rng = np.random.default_rng(seed)
+    V = sigma ** 2 * (0.5 + rng.random(T.shape))
+    noisy = T + np.sqrt(V) * rng.standard_normal(T.shape)
+    np.fill_diagonal(noisy, np.diagonal(T))
+    return noisy, V
+
+
+@pytest.mark.parametrize("exact", [True, False], ids=["identity", "probes"])
+def test_the_estimated_risk_is_the_filters_true_error(scene, exact, monkeypatch):
+    """SURE: bias^2 + variance, estimated from the noisy T alone, is its distance from the
+    true T at every width (relative to the noise's total variance), whether the filter's
+    diagonals are measured exactly or from random sign probes."""
+    T, pairs = scene
+    sigma = 2e-3
+    noisy, V = _noisy(T, sigma)
+    monkeypatch.setattr(R, "PROBE_EXACT_M", 10 ** 9 if exact else 0)
+    _, _, table = R.choose_width(noisy, None, sigma, V, pairs, widths=(0.5, 0.82, 1.41))
+    total = V.sum() - np.trace(V)
+    for row in table:
+        true = np.sum((R.smooth_isf(noisy, None, row["width"], sigma, pairs) - T) ** 2) / total
+        assert row["bias2"] + row["variance"] == pytest.approx(true, abs=0.02), row
+    # and the filter removes noise: every width is far closer than T as measured (1.0)
+    assert max(row["bias2"] + row["variance"] for row in table) < 0.2
+
+
+def test_more_noise_gets_a_wider_filter_and_a_closer_t(scene):
+    T, pairs = scene
+    chosen = []
+    for sigma in (1e-4, 1e-3, 1e-2):
+        noisy, V = _noisy(T, sigma)
+        filtered, width, _ = R.choose_width(noisy, None, sigma, V, pairs)
+        chosen.append(width)
+        assert np.linalg.norm(filtered - T) < np.linalg.norm(noisy - T)
+    assert chosen == sorted(chosen) and chosen[-1] > chosen[0], chosen
+
+
+def test_regularise_without_a_width_reports_the_choice(scene):
+    T, pairs = scene
+    noisy, V = _noisy(T, 1e-2)
+    filtered, reg = R.regularise_isf(noisy, None, 1e-2, width=None, pairs=pairs, variance=V)
+    assert reg.width in R.CHOICES and [w for w, _ in reg.tried] == [0.0, *R.CHOICES]
+    assert f"width {reg.width:g}" in reg.describe() and "estimated risk" in reg.describe()
+    assert np.linalg.norm(filtered - T) < 0.5 * np.linalg.norm(noisy - T)
+    # no noise to remove: T as measured, and why
+    clean, none = R.regularise_isf(T, None, 1e-12, width=None, pairs=pairs)
+    assert none.width == 0 and np.allclose(clean, T, rtol=1e-12, atol=0) and "left as measured" in none.describe()

@@ -44,8 +44,9 @@ from ilt.workspace.options import DECOMPOSE
 @click.option("--regularise/--no-regularise", default=None,
               help="Denoise T before inverting it: smooth its indirect part along pixels and beams (neighbouring "
                    "cells, or the plan's grid without cells), edge-aware (neighbours whose light differs by more "
-                   "than the noise are not averaged), kept when the change is within the noise (discrepancy "
-                   "principle). Default: on when T's noise is known (build-isf's noise.json, or --noise) and "
+                   "than the noise are not averaged), as wide as its estimated error against the true T is least "
+                   "(SURE with each entry's noise from T_var.npy) and within the noise (discrepancy principle). "
+                   "Default: on when T's noise is known (build-isf's noise.json, or --noise) and "
                    "m <= 4096; summary.json says what was done and why.")
 @stage_option(DECOMPOSE["samples_only"],
               help="Split the photo at the m samples only: skip the full-resolution bounce images "

@@ -23,7 +23,11 @@ diffusion on a uniform region, in layout steps.
 every bounce, the pooled bounces and T1 against plain inversion on the simulated
 scenes for sigma 1e-4 to 1e-2, and keeps it only when its change to T is no larger
 than the noise, ``||T_w - T||_F <= sigma sqrt(m (m - 1))`` (Morozov's discrepancy
-principle, as a guard: a change past it removes more than noise).
+principle, as a guard: a change past it removes more than noise). With ``width=None``
+(what ``ilt decompose`` runs) it takes the width of :data:`CHOICES` whose estimated
+error against the true T is least (:func:`choose_width`: Stein's unbiased risk
+estimate, with each entry's own noise): T's noise grows with the beams, and the width
+that serves a 48-beam scan leaves noise in a 384-beam one (docs/numerics.md).
 """
 
 from __future__ import annotations

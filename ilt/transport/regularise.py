@@ -237,11 +237,12 @@ def choose_width(unit: np.ndarray, layout: tuple[int, int] | None, noise: float,
         def weighted(a, b):      # sum over i != j of V_ij a_i b_j
             return noise ** 2 * (a.sum() * b.sum() - a @ b)
     else:
-        diagonal = np.array(np.diagonal(variance), dtype=np.float64)
-        total = float(np.sum(variance, dtype=np.float64) - diagonal.sum())
+        variance = np.asarray(variance, dtype=np.float64)    # once (T_var.npy is float32 on disk)
+        diagonal = np.diagonal(variance).copy()
+        total = float(variance.sum() - diagonal.sum())
 
         def weighted(a, b):
-            return float(a @ np.asarray(variance @ b, dtype=np.float64) - np.sum(diagonal * a * b))
+            return float(a @ (variance @ b) - np.sum(diagonal * a * b))
     total = max(total, np.finfo(float).tiny)
     # T and its transpose alternate (the two filters commute): one transpose a width
     x, flipped, measured = unit, False, (unit, np.ascontiguousarray(unit.T))

@@ -102,7 +102,9 @@ def subset(lattice_hdr: Path, beams: list[int], out: Path) -> Path:
 def scan(case: Path, hdr: Path, name: str, beams: list[int], build_args=()) -> Path:
     """centroids, build-isf (with ``build_args``) and decompose of the subset; the scan's directory."""
     where = case / f"scans-{hdr.name}" / name
-    if (where / "dec").exists():
+    record = json.dumps(sorted(int(b) for b in beams))
+    # reused from a kept scratch only when it is the same beams (random draws depend on the scenes' order)
+    if (where / "dec").exists() and (where / "beams.json").exists() and (where / "beams.json").read_text() == record:
         return where
     shutil.rmtree(where, ignore_errors=True)
     frames = subset(hdr, beams, where / "hdr")
@@ -110,6 +112,7 @@ def scan(case: Path, hdr: Path, name: str, beams: list[int], build_args=()) -> P
     run("build-isf", frames, where / "spots", "-o", where / "isf", *build_args)
     run("decompose", "--isf", where / "isf", *[case / "photos" / f"{p}.exr" for p in PHOTOS], "-o", where / "dec",
         "--no-cache")
+    (where / "beams.json").write_text(record)
     return where
 
 

@@ -152,6 +152,9 @@ def load_operator(
         T = scan_isf(regularised)  # another matrix: scanned once more
         along = "the cells' neighbours" if neighbours is not None else "the plan's grid"
         notes.update(regularisation=f"{reg.describe()}, along {along}", regularisation_width=reg.width)
+        if reg.risks is not None:   # each width's estimated risk (relative to T's noise), what chose it
+            notes.update(regularisation_risks=[{k: (bool(v) if k == "past_the_noise" else float(v))
+                                                for k, v in row.items()} for row in reg.risks])
         key += f"-reg{reg.width:g}-{measured:.3e}" + ("-cells" if neighbours is not None else "")
     name, reason = choose_solver(T, measured) if solver == "auto" else (solver, f"asked for {solver}")
     notes.update(fingerprint="sha256:" + key.split("-")[0])

@@ -11,6 +11,7 @@ from ilt.isf.build import build_isf, sample_like
 from ilt.isf.directory import load_isf
 from ilt.isf.fine import MIN_EXPLAINED, CellGeometry, FineAccumulator, fit_operator
 from ilt.isf.noise import NOISE_FILE, T_VAR_FILE, fit_frame_noise, read_noise
+from ilt.transport.regularise import BIAS_WEIGHT
 
 READ_E = 3.0
 
@@ -133,6 +134,11 @@ def test_build_isf_carries_the_noise_into_t_and_decompose_uses_it(tmp_path):
     assert NOISE_FILE in operator["noise_source"]
     # and with the noise measured, T is denoised by default, along the cells' neighbours
     assert operator["regularisation_width"] > 0 and "along the cells' neighbours" in operator["regularisation"]
+    # at the width of least estimated risk among those within the noise, each width's figures recorded
+    risks = operator["regularisation_risks"]
+    allowed = [row for row in risks if not row["past_the_noise"]]
+    assert operator["regularisation_width"] == min(allowed, key=lambda row: row["risk"])["width"]
+    assert all(row["risk"] == pytest.approx(BIAS_WEIGHT * row["bias2"] + row["variance"]) for row in risks)
     run("decompose", "--isf", tmp_path / "isf", sim / "photos" / "room.exr", "-o", tmp_path / "plain", "--no-cache",
         "--no-regularise")
     plain = json.loads((tmp_path / "plain" / "room" / "summary.json").read_text())["operators"]

@@ -75,3 +75,24 @@ def test_regularise_without_a_width_reports_the_choice(scene):
     # no noise to remove: T as measured, and why
     clean, none = R.regularise_isf(T, None, 1e-12, width=None, pairs=pairs)
     assert none.width == 0 and np.allclose(clean, T, rtol=1e-12, atol=0) and "left as measured" in none.describe()
+
+
+def test_the_plans_grid_and_its_own_pairs_choose_alike():
+    """Without cells the filter runs on the plan's grid: the same choice, the same risks and
+    the same filtered T as along the grid's own neighbour pairs (two code paths, one filter)."""
+    rows, cols = 12, 10
+    m = rows * cols
+    index = np.arange(m).reshape(rows, cols)
+    pairs = np.concatenate([np.stack([index[:-1].ravel(), index[1:].ravel()], 1),
+                            np.stack([index[:, :-1].ravel(), index[:, 1:].ravel()], 1)])
+    yy, xx = np.divmod(np.arange(m), cols)
+    d = np.hypot(yy[:, None] - yy[None], xx[:, None] - xx[None])
+    T = 0.3 / m * np.exp(-d / 4.0) * (1.0 + 0.5 * (xx[:, None] >= cols // 2))
+    np.fill_diagonal(T, 1.0)
+    noisy, V = _noisy(T / np.linalg.norm(T, axis=0), 3e-3)
+    grid = R.choose_width(noisy, (rows, cols), 3e-3, V)
+    graph = R.choose_width(noisy, None, 3e-3, V, pairs)
+    assert grid[1] == graph[1] > 0
+    assert np.allclose(grid[0], graph[0], rtol=1e-10, atol=1e-13)
+    for a, b in zip(grid[2], graph[2]):
+        assert a["risk"] == pytest.approx(b["risk"], rel=1e-8, abs=1e-12)

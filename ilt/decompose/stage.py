@@ -88,6 +88,7 @@ def load_operator(
     noise_source: str = "given",
     neighbours: np.ndarray | None = None,
     variance: np.ndarray | None = None,
+    areas: np.ndarray | None = None,
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
@@ -106,7 +107,8 @@ def load_operator(
     ``neighbours`` (e, 2): the samples whose cells share a pixel edge (:func:`_neighbours`),
     which the filter smooths along instead of the plan's grid, at the width of least
     estimated risk (:func:`~ilt.transport.regularise.choose_width`) given ``variance``
-    (m, m), each unit-column entry's (build-isf's ``T_var.npy``), else ``noise`` squared. Returns the operator and a JSON-ready dict of diagnostics with
+    (m, m), each unit-column entry's (build-isf's ``T_var.npy``), else ``noise`` squared;
+    with ``areas`` (m,), the cells' pixel counts, on the light per pixel of each cell. Returns the operator and a JSON-ready dict of diagnostics with
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
     ``series`` or ``compressed`` figures of those solvers, build included).
     ``fingerprint``: T's :func:`~ilt.io.manifest.fingerprint_array` when the caller has it.
@@ -148,14 +150,15 @@ def load_operator(
         notes.update(regularisation=f"T left as measured: {why_not}", regularisation_width=0.0)
     else:
         regularised, reg = regularise_isf(T, None if neighbours is not None else layout, measured, width=None,
-                                          pairs=neighbours, variance=variance)
+                                          pairs=neighbours, variance=variance, areas=areas)
         T = scan_isf(regularised)  # another matrix: scanned once more
         along = "the cells' neighbours" if neighbours is not None else "the plan's grid"
         notes.update(regularisation=f"{reg.describe()}, along {along}", regularisation_width=reg.width)
         if reg.risks is not None:   # each width's estimated risk (relative to T's noise), what chose it
             notes.update(regularisation_risks=[{k: (bool(v) if k == "past_the_noise" else float(v))
                                                 for k, v in row.items()} for row in reg.risks])
-        key += f"-reg{reg.width:g}-{measured:.3e}" + ("-cells" if neighbours is not None else "")
+        key += f"-reg{reg.width:g}-{measured:.3e}" + ("-cells" if neighbours is not None else "") + \
+            ("-px" if reg.per_pixel else "")
     name, reason = choose_solver(T, measured) if solver == "auto" else (solver, f"asked for {solver}")
     notes.update(fingerprint="sha256:" + key.split("-")[0])
     if executor is not None and name != "compressed":
@@ -528,7 +531,8 @@ def decompose(
                                         isf.samples, fingerprint=fingerprint if spilled is None else None,
                                         executor=executor, noise_source=noise_source,
                                         neighbours=_neighbours(isf) if regularise is not False else None,
-                                        variance=_entry_variance(isf) if noise_source != "given" else None)
+                                        variance=_entry_variance(isf) if noise_source != "given" else None,
+                                        areas=_cell_areas(isf) if regularise is not False else None)
         except TransportError as exc:
             raise TransportError(f"{isf.path}: {exc}") from None
         if spilled is not None:
@@ -812,6 +816,15 @@ def _entry_variance(isf) -> np.ndarray | None:
         return None
     variance = np.load(path, mmap_mode="r")
     return variance if variance.shape == (isf.m, isf.m) else None
+
+
+def _cell_areas(isf) -> np.ndarray | None:
+    """(m,) the pixels of each cell, or None without cells (or with an empty one)."""
+    if isf.cells is None:
+        return None
+    labels = np.asarray(isf.cells)
+    areas = np.bincount(labels[labels >= 0].astype(np.int64), minlength=isf.m)[:isf.m]
+    return areas if np.all(areas > 0) else None
 
 
 def _neighbours(isf):

@@ -86,12 +86,9 @@ def oracle_scan(case: Path, scan: Path, facet: np.ndarray) -> Path:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scratch", type=Path, required=True, help="noisy_sweep.py's --scratch")
-    ap.add_argument("--scenes", default="m,textured,occluded")
-    ap.add_argument("--electrons", type=float, default=2e4)
-    ap.add_argument("--frames", default=None, help="the frames' directory name (default: hdr-noisy, or hdr at 0 e-)")
+    noisy_sweep.scan_arguments(ap, "m,textured,occluded")
     args = ap.parse_args()
-    frames = args.frames or ("hdr" if args.electrons == 0 else "hdr-noisy")
+    frames = noisy_sweep.frames_name(args)
     root = args.scratch / f"e{args.electrons:g}"
     print("| scene | beams | ilt's cells | cells ending at the facets (oracle) | change |")
     print("|---|---|---|---|---|")

@@ -110,14 +110,11 @@ def table(scene: str, rows: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scratch", type=Path, required=True, help="noisy_sweep.py's --scratch")
-    ap.add_argument("--scenes", default="m,occluded,textured,box")
-    ap.add_argument("--electrons", type=float, default=2e4)
-    ap.add_argument("--frames", default=None, help="the frames' directory name (default: hdr-noisy, or hdr at 0 e-)")
+    noisy_sweep.scan_arguments(ap, "m,occluded,textured,box")
     ap.add_argument("--block", type=int, default=8)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
-    frames = args.frames or ("hdr" if args.electrons == 0 else "hdr-noisy")
+    frames = noisy_sweep.frames_name(args)
     root = args.scratch / f"e{args.electrons:g}"
     results = {}
     for scene in args.scenes.split(","):

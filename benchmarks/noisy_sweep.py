@@ -115,6 +115,19 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
             "base_pixels": int(mask.sum()), "scans": rows}
 
 
+def scan_arguments(ap: argparse.ArgumentParser, scenes: str) -> None:
+    """The options of a benchmark that reads this sweep's scans (``--scratch`` and so on)."""
+    ap.add_argument("--scratch", type=Path, required=True, help="noisy_sweep.py's --scratch")
+    ap.add_argument("--scenes", default=scenes)
+    ap.add_argument("--electrons", type=float, default=2e4)
+    ap.add_argument("--frames", default=None, help="the frames' directory name (default: hdr-noisy, or hdr at 0 e-)")
+
+
+def frames_name(args) -> str:
+    """The frames' directory of :func:`scan_arguments`' options."""
+    return args.frames or ("hdr" if args.electrons == 0 else "hdr-noisy")
+
+
 def rises(result: dict) -> list[str]:
     """Every photo and bounce whose error rises from one density to the next, and any fall in coverage."""
     counts = sorted(result["scans"])

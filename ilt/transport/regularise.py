@@ -183,11 +183,14 @@ def _filter(unit: np.ndarray, layout: tuple[int, int] | None, noise: float, pair
     same linear filter. ``noise``: an entry's, or with ``pairs`` (m,) each row's;
     ``confidence`` (m,), with ``pairs``: how much each row counts along pixels."""
     if pairs is not None:
-        columns = np.ascontiguousarray(unit.T)      # rows gathered from contiguous memory, both ways
-        # noise one for each row (a cell's, per pixel): a column's entries have their mean square
         pixels = _pair_weights(unit, pairs, noise)
-        beams = _pair_weights(columns, pairs, float(np.sqrt(np.mean(np.square(noise)))))
-        del columns
+        # along beams a row's scale is common to the two entries averaged: two columns are
+        # compared as the cells' sums, where every entry has its noise alike
+        sums = unit if confidence is None else unit * np.asarray(confidence, dtype=np.float64)[:, None]
+        columns = np.ascontiguousarray(sums.T)      # rows gathered from contiguous memory, both ways
+        spread = np.square(noise) if confidence is None else np.square(np.asarray(noise) * confidence)
+        beams = _pair_weights(columns, pairs, float(np.sqrt(np.mean(spread))))
+        del columns, sums
         return (lambda x, width, skip_diagonal=True: _diffuse_pairs(x, pairs, pixels, width, skip_diagonal,
                                                                     confidence),
                 lambda x, width, skip_diagonal=True: _diffuse_pairs(x, pairs, beams, width, skip_diagonal))

@@ -86,9 +86,8 @@ def load_operator(
     fingerprint: str | None = None,
     executor=None,
     noise_source: str = "given",
-    neighbours: np.ndarray | None = None,
+    cells: np.ndarray | None = None,
     variance: np.ndarray | None = None,
-    areas: np.ndarray | None = None,
 ):
     """``C1`` for ``T`` and its diagnostics; dense operators come from the cache when
     the same T (and regularisation) was seen before.
@@ -102,13 +101,14 @@ def load_operator(
     top rank at m = 3072 is 216 by pixels, 521 by grid); without them, ``layout`` and
     ``beams`` (plan beam of each row) place the samples on the plan's grid.
     ``regularise``: denoise T first (:mod:`ilt.transport.regularise`; needs the noise, and
-    ``neighbours`` or the plan's full grid ``layout``); None (auto): when it can and the
+    ``cells`` or the plan's full grid ``layout``); None (auto): when it can and the
     dense copies fit (:func:`auto_regularise`), else T as measured and why in the notes.
-    ``neighbours`` (e, 2): the samples whose cells share a pixel edge (:func:`_neighbours`),
-    which the filter smooths along instead of the plan's grid, at the width of least
-    estimated risk (:func:`~ilt.transport.regularise.choose_width`) given ``variance``
-    (m, m), each unit-column entry's (build-isf's ``T_var.npy``), else ``noise`` squared;
-    with ``areas`` (m,), the cells' pixel counts, on the light per pixel of each cell. Returns the operator and a JSON-ready dict of diagnostics with
+    ``cells`` (H, W): the ISF's cell labels; the filter then smooths along the cells that
+    share a pixel edge instead of the plan's grid, on the light per pixel of each cell
+    (found here, only when T is filtered), at the width of least estimated risk
+    (:func:`~ilt.transport.regularise.choose_width`) given ``variance`` (m, m), each
+    unit-column entry's (build-isf's ``T_var.npy``), else ``noise`` squared. Returns the
+    operator and a JSON-ready dict of diagnostics with
     ``solver``, ``solver_reason``, ``noise``, ``cached`` and ``fingerprint`` (and the
     ``series`` or ``compressed`` figures of those solvers, build included).
     ``fingerprint``: T's :func:`~ilt.io.manifest.fingerprint_array` when the caller has it.
@@ -124,7 +124,7 @@ def load_operator(
     # diagnostics. Not made for a dense operator with the noise given and T not to be
     # regularised, which may be in the cache: that reads T only for its fingerprint (a
     # cache miss scans it to factorise)
-    has_neighbours = neighbours is not None or (layout is not None and layout[0] * layout[1] == m)
+    has_neighbours = cells is not None or (layout is not None and layout[0] * layout[1] == m)
     # by default only with the noise known (build-isf's, from the frames, or given): negative
     # entries of T are not all noise (a T of no physical scene has them too)
     why_not = None if regularise else "--no-regularise" if regularise is False else \
@@ -149,6 +149,7 @@ def load_operator(
                        "(--regularise uses it; --noise gives it)")
         notes.update(regularisation=f"T left as measured: {why_not}", regularisation_width=0.0)
     else:
+        neighbours, areas = (None, None) if cells is None else (_neighbours(cells), _cell_areas(cells, m))
         regularised, reg = regularise_isf(T, None if neighbours is not None else layout, measured, width=None,
                                           pairs=neighbours, variance=variance, areas=areas)
         T = scan_isf(regularised)  # another matrix: scanned once more
@@ -530,9 +531,8 @@ def decompose(
             op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
                                         isf.samples, fingerprint=fingerprint if spilled is None else None,
                                         executor=executor, noise_source=noise_source,
-                                        neighbours=_neighbours(isf) if regularise is not False else None,
-                                        variance=_entry_variance(isf) if noise_source != "given" else None,
-                                        areas=_cell_areas(isf) if regularise is not False else None)
+                                        cells=isf.cells if regularise is not False else None,
+                                        variance=_entry_variance(isf) if noise_source != "given" else None)
         except TransportError as exc:
             raise TransportError(f"{isf.path}: {exc}") from None
         if spilled is not None:
@@ -818,18 +818,14 @@ def _entry_variance(isf) -> np.ndarray | None:
     return variance if variance.shape == (isf.m, isf.m) else None
 
 
-def _cell_areas(isf) -> np.ndarray | None:
-    """(m,) the pixels of each cell, or None without cells (or with an empty one)."""
-    if isf.cells is None:
-        return None
-    labels = np.asarray(isf.cells)
-    areas = np.bincount(labels[labels >= 0].astype(np.int64), minlength=isf.m)[:isf.m]
+def _cell_areas(cells: np.ndarray, m: int) -> np.ndarray | None:
+    """(m,) the pixels of each cell of the label image ``cells``, or None with an empty one."""
+    labels = np.asarray(cells)
+    areas = np.bincount(labels[labels >= 0].astype(np.int64), minlength=m)[:m]
     return areas if np.all(areas > 0) else None
 
 
-def _neighbours(isf):
-    """(e, 2) the ISF's cells that share a pixel edge, or None without cells."""
-    if isf.cells is None:
-        return None
+def _neighbours(cells: np.ndarray) -> np.ndarray:
+    """(e, 2) the cells of the label image ``cells`` that share a pixel edge."""
     from ilt.isf.fine import adjacent_cells
-    return adjacent_cells(isf.cells)
+    return adjacent_cells(cells)

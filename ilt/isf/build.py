@@ -128,7 +128,8 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     above ``fraction`` x its median at the spot pixels (build-isf's default 1e-4: between
     the spots of a sparse scan the sum is only indirect light, 2e-4 to 7.5e-4 of the
     spots' level on the simulator's M at 48 beams, and 1e-3 left three quarters of it out)
-    and it is not on a silhouette, partly background (:func:`_silhouette`, judged on ``indirect``, the sum without the spots, when given). Noisy frames: where the sum's
+    and it is not on a silhouette, partly background (:func:`_silhouette`, judged on
+    ``indirect``, the sum without the spots, when given). Noisy frames: where the sum's
     5 x 5 mean (:data:`LIT_SMOOTH`) is above both that and ``sigmas`` x the mean's noise,
     or down to
     :data:`LIT_LOW_SIGMAS` / ``sigmas`` of both where it touches such a pixel

@@ -221,7 +221,8 @@ def smooth_isf(T: np.ndarray, layout: tuple[int, int] | None, width: float, nois
 
 def choose_width(unit: np.ndarray, layout: tuple[int, int] | None, noise: float,
                  variance: np.ndarray | None = None, pairs: np.ndarray | None = None,
-                 widths=CHOICES, seed: int = 0, confidence: np.ndarray | None = None) -> tuple[np.ndarray, float, list]:
+                 widths=CHOICES, seed: int = 0,
+                 confidence: np.ndarray | None = None) -> tuple[np.ndarray, float, list]:
     """The filtered unit-column T at the width of least estimated risk, that width (0:
     none has less than T as measured) and the table of (width, change, risk, bias^2,
     variance), all relative to T's total noise variance.
@@ -288,7 +289,6 @@ def choose_width(unit: np.ndarray, layout: tuple[int, int] | None, noise: float,
                       "variance": spread / total, "past_the_noise": guarded})
         if risk < best_risk and not guarded:
             best, best_risk, best_x = width, risk, (x.T if flipped else x)
-    del measured
     return np.array(best_x, dtype=np.float64), best, table
 
 

@@ -196,6 +196,21 @@ def _tracked(task: int, function, *args):
         _running.end(task)
 
 
+class _Future(cf.Future):
+    """A pool's future that, once cancelled, ignores the failure the pool's thread sets
+    on it when the pool breaks. Python 3.11's thread does not expect a future it holds
+    to be cancelled: a chunk queued when ilt stops (cancelled by ``run_chunks``, then
+    its workers killed) made that thread die with ``InvalidStateError``, print a
+    traceback and leak its semaphores (seen under load; gh-107219, fixed in 3.12)."""
+
+    def set_exception(self, exception) -> None:
+        try:
+            super().set_exception(exception)
+        except cf.InvalidStateError:
+            if not self.cancelled():
+                raise
+
+
 class BeamPool(cf.ProcessPoolExecutor):
     """A process pool that knows which task each worker runs and leaves no worker
     behind when the block using it ends on an exception."""
@@ -217,6 +232,7 @@ class BeamPool(cf.ProcessPoolExecutor):
         task, self._submitted = self._submitted, self._submitted + 1
         with _signals_held():  # (it may start a worker)
             future = super().submit(_tracked, task, function, *args, **kwargs)
+        future.__class__ = _Future  # before anyone can cancel it
         self._futures[task] = future
         return future
 

@@ -98,7 +98,7 @@ def main() -> None:
         facet = column_facets(scene, m, px, spot)
         scans = sorted((case / f"scans-{frames}").glob("sweep-*"), key=lambda p: int(p.name.split("-")[1]))
         scans = [s for s in scans if len(s.name.split("-")) == 2]
-        mask = refine_bench.covered(scans[0])
+        mask = refine_bench.covered(scans[0], cells_only=True)
         for scan in scans:
             ours = refine_bench.errors(case, scan, mask).mean()
             theirs = refine_bench.errors(case, oracle_scan(case, scan, facet), mask).mean()

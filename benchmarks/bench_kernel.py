@@ -78,7 +78,7 @@ def measure(case: Path, frames_name: str, block: int) -> dict:
 
     scans = sorted((case / f"scans-{frames_name}").glob("sweep-*"), key=lambda p: int(p.name.split("-")[1]))
     scans = [s for s in scans if s.name.split("-")[1].isdigit() and len(s.name.split("-")) == 2]
-    mask = refine_bench.covered(scans[0])
+    mask = refine_bench.covered(scans[0], cells_only=True)
     rows = {}
     for scan in scans:
         manifest = json.loads((scan / "isf" / "manifest.json").read_text())

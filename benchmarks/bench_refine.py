@@ -139,10 +139,13 @@ def errors(case: Path, where: Path, mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def covered(where: Path, photo: str = "room") -> np.ndarray:
+def covered(where: Path, photo: str = "room", cells_only: bool = False) -> np.ndarray:
+    """(H, W) bool: the pixels a decomposition covers (coverage.exr > 0: cells and their
+    rim), or only those inside its cells (coverage 1): the pixels errors are measured over."""
     from ilt.io.exr import read_exr
 
-    return read_exr(where / "dec" / photo / "coverage.exr")[0][..., 0] > 0
+    coverage = read_exr(where / "dec" / photo / "coverage.exr")[0][..., 0]
+    return coverage == 1.0 if cells_only else coverage > 0
 
 
 def nearest_unused(targets: np.ndarray, spots: np.ndarray, used: set[int]) -> list[int]:
@@ -264,7 +267,7 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
     uniform = uniform_sets(scene, lattice_m, factor)
     base_beams = uniform[min(uniform)]
     base = scan(case, hdr, f"uniform-{len(base_beams)}", base_beams)
-    mask = covered(base)
+    mask = covered(base, cells_only=True)
 
     def grown(name, beams):
         """A scan of more beams than the base: with --keep-covered, built keeping the base's coverage."""

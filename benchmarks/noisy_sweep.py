@@ -101,7 +101,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
         else:
             where[count] = refine_bench.scan(case, hdr, f"sweep-{count}", beams)
         earlier = where[count]
-    mask = refine_bench.covered(where[min(where)])
+    mask = refine_bench.covered(where[min(where)], cells_only=True)
     rows = {}
     for count, w in where.items():
         manifest = json.loads((w / "isf" / "manifest.json").read_text())

@@ -5,6 +5,8 @@ photo's cell integrals; the fine operator (:mod:`ilt.isf.fine`) spreads each bou
 indirect light over its cell's pixels, and the direct image is what is left of the
 photo. No solve beyond the sample level's: every image comes from the recursion's own
 ``r_n`` and ``L_(n+1) / t1``, and integrates over every cell to the sample-level bounce.
+The rim, the pixels just outside every cell (:func:`ilt.isf.fine.rim`), takes the
+indirect light of the nearest pixel inside, up to the photo's own.
 """
 
 from __future__ import annotations
@@ -29,6 +31,15 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     slope of their neighbours' means of that bounce (:mod:`ilt.isf.slopes`); False: flat.
     Returns {"bounce-1" .. "bounce-N", "indirect", "residual", "coverage"}: (H, W[, c])
     float32 images; ``photo = bounce-1 + ... + bounce-N + residual`` at every pixel.
+    Coverage is 1 inside cells, :data:`RIM_COVERAGE` on the rim, 0 elsewhere.
+
+    The rim: a pixel outside every cell within :data:`ilt.isf.fine.RIM_PX` of one takes
+    each ``Phi_n`` of the nearest pixel inside, scaled by ``s = clip(photo / Phi_0, 0,
+    1)`` there: the indirect light is smooth, and no more than the photo holds. Its bounce 1
+    is the rest of the photo. At the faint rim of a scan's light the lit test lets pixels
+    in or out by the noise; they got no bounces at all, and held most of the error of bounce
+    1 (docs/fullres.md "The rim"). Where the photo is dark (background past a
+    silhouette) ``s`` is 0 and so are the bounces.
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
     """
     image = np.asarray(photo)
@@ -43,10 +54,12 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     area = np.maximum(fine.geometry.area, 1.0)[:, None]
     inside = fine.geometry.inside
     excluded = None if excluded is None or not excluded.any() else excluded.reshape(-1)
+    rim, nearest = fine.rim
 
-    def image_of(values_inside, outside=None):
+    def image_of(values_inside, values_rim, outside=None):
         full = np.zeros(flat.shape, np.float32) if outside is None else outside.astype(np.float32)
         full[inside] = values_inside
+        full[rim] = values_rim
         if excluded is not None:
             full[excluded] = 0.0 if outside is None else outside[excluded]
         return full.reshape(shape)
@@ -61,24 +74,40 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
             if n:
                 later = later + slopes.coefficients(bounces[n] / area)
     out = {}
-    previous = None
+    previous = previous_rim = scale = None
     for n in range(count):
         residual = residual - bounces[n]                               # r_(n+1)
         terms = per_cell[:, :, n] if planes[n] is None else _add_planes(per_cell[:, :, n], planes[n])
         phi = fine.field(residual, terms, basis)                       # Phi_n
         if n == 0:
-            out["bounce-1"] = image_of(flat[inside] - phi)
-            out["indirect"] = image_of(phi)
+            scale = _rim_scale(flat[rim], phi[nearest])                # s, of each rim pixel
+        phi_rim = scale * phi[nearest]
+        if n == 0:
+            out["bounce-1"] = image_of(flat[inside] - phi, flat[rim] - phi_rim)
+            out["indirect"] = image_of(phi, phi_rim)
         else:
-            out[f"bounce-{n + 1}"] = image_of(previous - phi)
-        previous = phi
-    out["residual"] = image_of(previous, flat)
+            out[f"bounce-{n + 1}"] = image_of(previous - phi, previous_rim - phi_rim)
+        previous, previous_rim = phi, phi_rim
+    out["residual"] = image_of(previous, previous_rim, flat)
     coverage = fine.coverage().reshape(-1)
+    coverage[rim] = RIM_COVERAGE
     if excluded is not None:
         coverage[excluded] = 0.0
     out["coverage"] = coverage.reshape(fine.shape)
     return {name: out[name] for name in [f"bounce-{n}" for n in range(1, count + 1)]
             + ["indirect", "residual", "coverage"]}
+
+
+#: coverage.exr's value on the rim (inside cells: 1)
+RIM_COVERAGE = 0.5
+
+
+def _rim_scale(photo: np.ndarray, phi0: np.ndarray) -> np.ndarray:
+    """(n, c) ``clip(photo / phi0, 0, 1)``, 0 where ``phi0 <= 0``: the share of the nearest
+    inside pixel's indirect light a rim pixel takes."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(phi0 > 0, photo / np.where(phi0 > 0, phi0, 1.0), 0.0)
+    return np.clip(ratio, 0.0, 1.0)
 
 
 def _add_planes(terms: np.ndarray, planes: np.ndarray) -> np.ndarray:

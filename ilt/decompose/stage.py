@@ -432,10 +432,13 @@ def _full_resolution_summary(photo: Photo, fine: FineOperator | None, why: str) 
         return {"written": False, "reason": why}
     saturated = int(photo.saturated.sum()) if photo.saturated is not None else 0
     covered = fine.geometry.inside.size - (int(photo.saturated.ravel()[fine.geometry.inside].sum()) if saturated else 0)
+    rim = fine.rim[0]
+    rim_count = rim.size - (int(photo.saturated.ravel()[rim].sum()) if saturated else 0)
     # the cells the build kept flat take the limited slope of their neighbours' means (ilt/isf/slopes.py)
     flat = int(fine.flat_cells.sum()) if fine.degree >= 1 else fine.geometry.m
     return {"written": True, "degree": fine.degree, "pixels": int(photo.image.shape[0] * photo.image.shape[1]),
-            "coverage": covered / (photo.image.shape[0] * photo.image.shape[1]), "saturated_pixels": saturated,
+            "coverage": covered / (photo.image.shape[0] * photo.image.shape[1]),
+            "rim": rim_count / (photo.image.shape[0] * photo.image.shape[1]), "saturated_pixels": saturated,
             "flat_cells": flat, "flat_cell_slopes": "neighbours" if fine.degree >= 1 else "none"}
 
 

@@ -58,6 +58,12 @@ FINE_DIR = "fine"
 COEFFICIENTS_FILE = "coefficients.npy"
 #: polynomial degree of the indirect light inside a cell (0: flat cells)
 DEFAULT_DEGREE = 1
+#: pixels outside every cell but within this many pixels of one (chessboard distance) are
+#: the rim: they take the indirect light of the nearest pixel inside a cell, up to the
+#: photo's own (:func:`rim`, docs/fullres.md "The rim"). Half the widest window of
+#: build-isf's lit test (``ilt.isf.build.LIT_WIDE``): the reach within which that test can
+#: let the scan's faint light in or out by the noise alone
+RIM_PX = 10
 DEGREES = (0, 1, 2)
 
 
@@ -304,6 +310,11 @@ class FineOperator:
         out[self.geometry.inside] = 1.0
         return out.reshape(self.shape)
 
+    @functools.cached_property
+    def rim(self) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`rim` of the cells (found once for every photo)."""
+        return rim(self.geometry)
+
     def per_cell(self, solved: np.ndarray) -> np.ndarray:
         """(K, m, N c) float32 ``c_k x_n`` for solved vectors ``x_n``, (N, m, c)."""
         N, m, c = solved.shape
@@ -319,6 +330,32 @@ class FineOperator:
         for k in range(basis.shape[0]):
             out += basis[k][:, None] * per_cell[k][label]
         return out
+
+
+def rim(geometry: CellGeometry, width: int = RIM_PX) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels outside every cell within ``width`` px of one (chessboard), as flat
+    indices, and for each the position in ``geometry.inside`` of the nearest pixel inside a
+    cell (Euclidean; ties to the lower index). Two chamfer distance transforms and a k-d
+    tree over the cells' border pixels: 0.4 s at 12 Mpx, where an exact Euclidean
+    transform with indices took 2.9 s."""
+    from scipy.ndimage import distance_transform_cdt
+    from scipy.spatial import cKDTree
+
+    none = np.empty(0, np.int64)
+    height, width_px = geometry.shape
+    if geometry.inside.size == 0 or geometry.inside.size == height * width_px or width < 1:
+        return none, none
+    covered = np.zeros(height * width_px, bool)
+    covered[geometry.inside] = True
+    covered = covered.reshape(geometry.shape)
+    away = distance_transform_cdt(~covered, metric="chessboard")     # outside: to the nearest cell pixel
+    pixels = np.flatnonzero((away > 0) & (away <= width))
+    if pixels.size == 0:
+        return none, none
+    border = np.flatnonzero(covered & (distance_transform_cdt(covered, metric="chessboard") == 1))
+    _, nearest = cKDTree(np.column_stack(np.divmod(border, width_px))).query(
+        np.column_stack(np.divmod(pixels, width_px)))
+    return pixels, np.searchsorted(geometry.inside, border[nearest])
 
 
 def load_fine(isf, t_fingerprint: str | None = None) -> tuple[FineOperator | None, str]:

@@ -277,3 +277,65 @@ def test_saturated_pixels_are_left_out_and_counted(scans, tmp_path):
         assert np.all(_image(out / f"bounce-{n}.exr")[saturated] == 0)
     summary = json.loads((out / "summary.json").read_text())["full_resolution"]
     assert summary["saturated_pixels"] == 20
+
+
+def test_the_rim_takes_the_nearest_cells_indirect_light_up_to_the_photos():
+    """Two cells on columns 0-19; columns 20-29 are the rim (within RIM_PX), 30-39 beyond.
+    A rim pixel takes each Phi_n of the nearest pixel inside (column 19 of its row) times
+    s = clip(photo / Phi_0, 0, 1): all of it under a bright photo, half of it where the
+    photo holds half of Phi_0, none where the photo is dark; bounce 1 is the rest, so the
+    images still sum to the photo. Beyond the rim: no bounces, the residual is the photo."""
+    from types import SimpleNamespace
+
+    from ilt.decompose.fullres import RIM_COVERAGE, full_resolution
+    from ilt.isf.fine import RIM_PX, FineOperator
+
+    assert RIM_PX == 10
+    labels = -np.ones((6, 40), np.int64)
+    labels[:, :10], labels[:, 10:20] = 0, 1
+    fine = FineOperator(None, CellGeometry.from_labels(labels, 2), 0, np.zeros((0, 2, 2), np.float32))
+    bounces = np.array([[[600.0], [300.0]], [[60.0], [90.0]], [[12.0], [30.0]]])   # L1-L3 of each cell
+    decomposition = SimpleNamespace(bounces=bounces, residual=np.array([[6.0], [12.0]]), count=3)
+    photo = np.full((6, 40, 1), 7.0, np.float32)
+    photo[:, :10], photo[:, 10:20] = 11.3, 7.2             # L / 60 px of each cell
+    phi0 = (90.0 + 30.0 + 12.0) / 60                       # cell 1's Phi_0 per pixel, at column 19
+    photo[:, 20:23], photo[:, 23:26], photo[:, 26:30] = 100.0, 0.5 * phi0, 0.0
+    images = full_resolution(fine, photo, decomposition, np.ones(2))
+    got = {k: v.reshape(6, 40).astype(np.float64) for k, v in images.items()}
+    share = np.zeros(40)
+    share[20:23], share[23:26] = 1.0, 0.5
+    rim = slice(20, 30)
+    np.testing.assert_allclose(got["coverage"][0], [1.0] * 20 + [RIM_COVERAGE] * 10 + [0.0] * 10)
+    for name, inside in (("indirect", phi0), ("bounce-2", 90.0 / 60), ("bounce-3", 30.0 / 60),
+                         ("residual", 12.0 / 60)):
+        np.testing.assert_allclose(got[name][:, rim], np.broadcast_to(share[rim] * inside, (6, 10)), rtol=1e-5)
+        np.testing.assert_allclose(got[name][:, 19], inside, rtol=1e-5)
+    np.testing.assert_allclose(got["bounce-1"][:, rim], photo[:, rim, 0] - got["indirect"][:, rim], rtol=1e-5)
+    assert np.all(got["bounce-1"][:, 26:30] == 0) and np.all(got["bounce-1"][:, 30:] == 0)
+    np.testing.assert_array_equal(got["residual"][:, 30:], 7.0)
+    total = sum(got[f"bounce-{n}"] for n in (1, 2, 3)) + got["residual"]
+    np.testing.assert_allclose(total, photo[:, :, 0], rtol=1e-5)
+
+
+def test_the_rim_is_every_pixel_near_a_cell_and_its_nearest_pixel_inside():
+    """Against brute force on random cells: the rim is the pixels outside every cell within
+    RIM_PX (chessboard) of one, and each is paired with an inside pixel at its least
+    Euclidean distance."""
+    from ilt.isf.fine import RIM_PX, rim
+
+    rng = np.random.default_rng(5)
+    labels = -np.ones((50, 70), np.int64)
+    for k in range(4):
+        y, x = rng.integers(0, 45), rng.integers(0, 60)
+        labels[y:y + rng.integers(2, 8), x:x + rng.integers(2, 12)] = k
+    geometry = CellGeometry.from_labels(labels, 4)
+    pixels, nearest = rim(geometry)
+    yx = np.column_stack(np.divmod(np.arange(labels.size), 70))
+    inside = yx[geometry.inside]
+    chess = np.abs(yx[:, None, :] - inside[None]).max(axis=2).min(axis=1)
+    expected = np.flatnonzero((chess >= 1) & (chess <= RIM_PX))
+    np.testing.assert_array_equal(pixels, expected)
+    best = np.linalg.norm(yx[pixels][:, None, :] - inside[None], axis=2).min(axis=1)
+    np.testing.assert_allclose(np.linalg.norm(yx[pixels] - inside[nearest], axis=1), best)
+    full = CellGeometry.from_labels(np.zeros((4, 4), np.int64), 1)
+    assert rim(full)[0].size == 0 and rim(CellGeometry.from_labels(-np.ones((4, 4), np.int64), 1))[0].size == 0

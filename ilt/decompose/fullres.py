@@ -34,12 +34,14 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     Coverage is 1 inside cells, :data:`RIM_COVERAGE` on the rim, 0 elsewhere.
 
     The rim: a pixel outside every cell within :data:`ilt.isf.fine.RIM_PX` of one takes
-    each ``Phi_n`` of the nearest pixel inside, scaled by ``s = clip(photo / Phi_0, 0,
-    1)`` there: the indirect light is smooth, and no more than the photo holds. Its bounce 1
-    is the rest of the photo. At the faint rim of a scan's light the lit test lets pixels
-    in or out by the noise; they got no bounces at all, and held most of the error of bounce
-    1 (docs/fullres.md "The rim"). Where the photo is dark (background past a
-    silhouette) ``s`` is 0 and so are the bounces.
+    each ``Phi_n`` of the nearest pixel inside, scaled by ``s``, the lesser of ``photo /
+    Phi_0`` there (no more light than the photo holds) and the photo's ratio to that
+    pixel's (a pixel partly background past a silhouette holds that share of it), clipped
+    to [0, 1]: the indirect light is smooth. Its bounce 1 is the rest of the photo. At the
+    faint rim of a scan's light the lit test lets pixels in or out by the noise; they got
+    no bounces at all, and held most of the error of bounce 1 (docs/fullres.md "The
+    rim"). Where the photo is dark (background past a silhouette) ``s`` is 0 and so are
+    the bounces.
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
     """
     image = np.asarray(photo)
@@ -80,7 +82,7 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
         terms = per_cell[:, :, n] if planes[n] is None else _add_planes(per_cell[:, :, n], planes[n])
         phi = fine.field(residual, terms, basis)                       # Phi_n
         if n == 0:
-            scale = _rim_scale(flat[rim], phi[nearest])                # s, of each rim pixel
+            scale = _rim_scale(flat[rim], phi[nearest], flat[inside][nearest])   # s, of each rim pixel
         phi_rim = scale * phi[nearest]
         if n == 0:
             out["bounce-1"] = image_of(flat[inside] - phi, flat[rim] - phi_rim)
@@ -102,11 +104,14 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
 RIM_COVERAGE = 0.5
 
 
-def _rim_scale(photo: np.ndarray, phi0: np.ndarray) -> np.ndarray:
-    """(n, c) ``clip(photo / phi0, 0, 1)``, 0 where ``phi0 <= 0``: the share of the nearest
-    inside pixel's indirect light a rim pixel takes."""
+def _rim_scale(photo: np.ndarray, phi0: np.ndarray, photo_inside: np.ndarray) -> np.ndarray:
+    """(n, c) the share of the nearest inside pixel's indirect light each rim pixel takes:
+    ``photo / phi0`` (no more than the photo holds) and ``photo / photo_inside`` (a pixel
+    partly background past a silhouette holds that share of its neighbour's light), the
+    lesser, clipped to [0, 1]; 0 where ``phi0`` or ``photo_inside`` is not positive."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(phi0 > 0, photo / np.where(phi0 > 0, phi0, 1.0), 0.0)
+        ratio = np.minimum(np.where(phi0 > 0, photo / np.where(phi0 > 0, phi0, 1.0), 0.0),
+                           np.where(photo_inside > 0, photo / np.where(photo_inside > 0, photo_inside, 1.0), 0.0))
     return np.clip(ratio, 0.0, 1.0)
 
 

@@ -280,11 +280,13 @@ def test_saturated_pixels_are_left_out_and_counted(scans, tmp_path):
 
 
 def test_the_rim_takes_the_nearest_cells_indirect_light_up_to_the_photos():
-    """Two cells on columns 0-19; columns 20-29 are the rim (within RIM_PX), 30-39 beyond.
-    A rim pixel takes each Phi_n of the nearest pixel inside (column 19 of its row) times
-    s = clip(photo / Phi_0, 0, 1): all of it under a bright photo, half of it where the
-    photo holds half of Phi_0, none where the photo is dark; bounce 1 is the rest, so the
-    images still sum to the photo. Beyond the rim: no bounces, the residual is the photo."""
+    """Two flat cells on columns 0-19; columns 20-29 are the rim (within RIM_PX), 30-39
+    beyond. A rim pixel takes each Phi_n of the nearest pixel inside (column 19 of its row)
+    times s, the lesser of photo / Phi_0 and the photo's ratio to that pixel's, in [0, 1]:
+    all of it under a bright photo; half of it where the photo holds half of Phi_0 and the
+    pixel inside reads less than Phi_0 (rows 0-2); an eighth where the pixel inside reads
+    8x the rim's photo (rows 3-5); none where the photo is dark. Bounce 1 is the rest, so
+    the images still sum to the photo. Beyond the rim: no bounces, the residual is the photo."""
     from types import SimpleNamespace
 
     from ilt.decompose.fullres import RIM_COVERAGE, full_resolution
@@ -296,19 +298,20 @@ def test_the_rim_takes_the_nearest_cells_indirect_light_up_to_the_photos():
     fine = FineOperator(None, CellGeometry.from_labels(labels, 2), 0, np.zeros((0, 2, 2), np.float32))
     bounces = np.array([[[600.0], [300.0]], [[60.0], [90.0]], [[12.0], [30.0]]])   # L1-L3 of each cell
     decomposition = SimpleNamespace(bounces=bounces, residual=np.array([[6.0], [12.0]]), count=3)
+    phi0 = (90.0 + 30.0 + 12.0) / 60                       # cell 1's Phi_0 per pixel (60 px): 2.2
     photo = np.full((6, 40, 1), 7.0, np.float32)
-    photo[:, :10], photo[:, 10:20] = 11.3, 7.2             # L / 60 px of each cell
-    phi0 = (90.0 + 30.0 + 12.0) / 60                       # cell 1's Phi_0 per pixel, at column 19
-    photo[:, 20:23], photo[:, 23:26], photo[:, 26:30] = 100.0, 0.5 * phi0, 0.0
+    photo[:, :10] = 11.3
+    photo[:3, 10:20], photo[3:, 10:20] = 2.0, 8.8
+    photo[:, 20:23], photo[:, 23:26], photo[:, 26:30] = 100.0, 1.1, 0.0
     images = full_resolution(fine, photo, decomposition, np.ones(2))
     got = {k: v.reshape(6, 40).astype(np.float64) for k, v in images.items()}
-    share = np.zeros(40)
-    share[20:23], share[23:26] = 1.0, 0.5
+    share = np.zeros((6, 10))
+    share[:, :3], share[:3, 3:6], share[3:, 3:6] = 1.0, 0.5, 0.125
     rim = slice(20, 30)
     np.testing.assert_allclose(got["coverage"][0], [1.0] * 20 + [RIM_COVERAGE] * 10 + [0.0] * 10)
     for name, inside in (("indirect", phi0), ("bounce-2", 90.0 / 60), ("bounce-3", 30.0 / 60),
                          ("residual", 12.0 / 60)):
-        np.testing.assert_allclose(got[name][:, rim], np.broadcast_to(share[rim] * inside, (6, 10)), rtol=1e-5)
+        np.testing.assert_allclose(got[name][:, rim], share * inside, rtol=1e-5)
         np.testing.assert_allclose(got[name][:, 19], inside, rtol=1e-5)
     np.testing.assert_allclose(got["bounce-1"][:, rim], photo[:, rim, 0] - got["indirect"][:, rim], rtol=1e-5)
     assert np.all(got["bounce-1"][:, 26:30] == 0) and np.all(got["bounce-1"][:, 30:] == 0)

@@ -335,9 +335,9 @@ class FineOperator:
 def rim(geometry: CellGeometry, width: int = RIM_PX) -> tuple[np.ndarray, np.ndarray]:
     """The pixels outside every cell within ``width`` px of one (chessboard), as flat
     indices, and for each the position in ``geometry.inside`` of the nearest pixel inside a
-    cell (Euclidean; ties to the lower index). Two chamfer distance transforms and a k-d
-    tree over the cells' border pixels: 0.4 s at 12 Mpx, where an exact Euclidean
-    transform with indices took 2.9 s."""
+    cell (Euclidean). Two chamfer distance transforms and a k-d tree over the cells'
+    border pixels: 0.31 s at 12 Mpx, 0.32x an exact Euclidean transform with indices
+    (benchmarks/bench_rim.py)."""
     from scipy.ndimage import distance_transform_cdt
     from scipy.spatial import cKDTree
 

@@ -67,6 +67,9 @@ def test_outputs_are_at_the_photos_resolution(scans):
     assert np.load(dec / "room" / "bounces.npy").shape == (8, 48)
     summary = json.loads((dec / "room" / "summary.json").read_text())["full_resolution"]
     assert summary["written"] and 0.9 < summary["coverage"] <= 1
+    coverage = _image(dec / "room" / "coverage.exr")
+    assert summary["coverage"] == pytest.approx(np.mean(coverage == 1))
+    assert summary["rim"] == pytest.approx(np.mean(coverage == 0.5))
 
 
 def test_pixels_close_and_cells_integrate_to_the_sample_bounces(scans):

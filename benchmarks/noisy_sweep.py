@@ -16,9 +16,9 @@ and each row and column of a face: 48, 108, 432), run through ``ilt centroids``,
 ``scan``). The photos (room, flashlight, projector) are the simulator's, noise-free.
 
 Errors: relative L2 of the full-resolution bounces 1-3 of each photo against the exact
-ones over the pixels the sparsest scan covers (so every scan is judged on the same
-pixels; a pixel a denser scan leaves uncovered counts as all error), and the share of
-those pixels each scan covers. The rig's time of each scan is m x the per-beam time of
+ones over the pixels inside the sparsest scan's cells (so every scan is judged on the same
+pixels; a pixel a denser scan leaves uncovered, in no cell and not on their rim, counts as
+all error), and the share of those pixels each scan covers (cells and rim). The rig's time of each scan is m x the per-beam time of
 ``ilt capture --estimate configs/rig-example.toml`` (a tethered DSLR, its 11-exposure
 bracket and a dark frame a beam). The table flags every photo and bounce whose error
 rises from one density to the next; ``--plot`` draws error against beams and hours.

@@ -1,0 +1,105 @@
+"""Isolated outlier pixels in a beam frame: fireflies, hot pixels, cosmic rays.
+
+A path tracer's Monte Carlo noise is not only Poisson-like: now and then one pixel of a
+frame is far too bright (a firefly); a sensor has hot pixels and cosmic-ray hits. Light
+that reaches a camera through a lens is never a single pixel far above all eight of its
+neighbours, a laser spot included (its disc is left alone all the same). Such a pixel adds
+a large wrong value to one cell's sum for one beam: one entry of T, which a denser scan's
+smaller cells average less (docs/fullres.md, "Monte Carlo outliers"). :func:`clamp_isolated`
+replaces each by the median of its neighbours, judged against the frames' own noise model
+(:mod:`ilt.isf.noise`): without one (noise-free frames) nothing is touched.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: a pixel this many sigmas above the brightest of its eight neighbours is an isolated
+#: outlier (on the noise model's variance-stabilising scale: :func:`_stabiliser`)
+OUTLIER_SIGMAS = 8.0
+
+#: the laser spot's own disc is left alone (its peak pixel can stand far above its
+#: neighbours): this many times the radius of the spot's area, and at least this many pixels
+SPOT_RADII = 3.0
+
+
+def spot_radius(area: float) -> float:
+    """The radius (px) about a spot of ``area`` pixels over threshold left alone."""
+    return max(SPOT_RADII, SPOT_RADII * float(np.sqrt(max(area, 0.0) / np.pi)))
+
+
+_STABILISERS: dict = {}
+
+
+def _stabiliser(noise):
+    """``f(x)``: the noise model's variance-stabilising transform, the integral of
+    ``1 / sigma(t)`` from 0 (Anscombe's ``2 sqrt(x)`` for photon counts): a pixel's noise is
+    1 on its scale at every level, so a difference of ``k`` there is ``k`` sigma whatever the
+    light. The variance is taken at least ``slope x`` (the photon noise the model's slope
+    says): a model fitted where most faint pixels count no photon gives 0 there, and one
+    photon above none would be infinitely many sigma. Built once per model (a table on a
+    grid uniform in sqrt(x), where the integrand is smooth)."""
+    key = (noise.levels, noise.variances, noise.slope)
+    if key not in _STABILISERS:
+        top = max(float(noise.levels[-1]), 1e-12)
+        u = np.concatenate([np.linspace(0.0, 4.0 * np.sqrt(top), 4097),
+                            np.sqrt(top) * np.geomspace(4.0, 1e6, 1024)[1:]])
+        x = u * u
+        variance = np.maximum(noise.pixel_variance(x), noise.slope * x)
+        floor = max(float(np.max(noise.variances)), 1.0) * 1e-12
+        integrand = 2.0 * u / np.sqrt(np.maximum(variance, floor))     # dx = 2u du
+        table = np.concatenate([[0.0], np.cumsum(0.5 * (integrand[1:] + integrand[:-1]) * np.diff(u))])
+        below = 1.0 / np.sqrt(max(float(noise.pixel_variance(np.zeros(1))[0]), floor))   # x < 0: sigma at 0
+
+        def scale(values):
+            values = np.asarray(values, dtype=np.float64)
+            root = np.sqrt(np.maximum(values, 0.0))
+            return np.where(values < 0, values * below, np.interp(root, u, table))
+        _STABILISERS[key] = scale
+    return _STABILISERS[key]
+
+
+_OFFSETS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+
+
+def clamp_isolated(frame: np.ndarray, noise, spot: np.ndarray | None = None, radius: float = 0.0,
+                   sigmas: float = OUTLIER_SIGMAS) -> int:
+    """Replace, in place, each pixel of ``frame`` (H, W) that stands more than ``sigmas``
+    noise sigmas (of the difference) above the brightest of its 8 neighbours by the median
+    of those 8; the
+    pixels within ``radius`` of ``spot`` (x, y) are left alone. ``noise``: the frames'
+    :class:`ilt.isf.noise.FrameNoise`, or None (then nothing is done). Returns how many
+    pixels were replaced.
+
+    At the frame's edge a pixel is judged on the neighbours it has. Cost: a screen on the
+    two horizontal neighbours (a few passes over the frame, in place of a 3 x 3 maximum
+    filter that took 0.34 s at 12 Mpx), then the exact test on the few pixels it leaves."""
+    if noise is None or frame.ndim != 2 or frame.size < 2:
+        return 0
+    height, width = frame.shape
+    floor = sigmas * float(np.sqrt(max(min(noise.variances), 0.0)))
+    # a pixel above both horizontal neighbours (or the one it has, at the frame's edge) by the
+    # least sigma there is: the few pixels the exact test then reads all neighbours of
+    padded = np.pad(frame, 1, constant_values=np.nan)
+    with np.errstate(invalid="ignore"):
+        sides = np.fmax(padded[1:-1, :-2], padded[1:-1, 2:])
+        candidates = np.flatnonzero(frame - sides > floor)
+    if candidates.size == 0:
+        return 0
+    rows, cols = np.divmod(candidates, width)
+    neighbours = np.stack([padded[rows + 1 + dy, cols + 1 + dx] for dy, dx in _OFFSETS])    # (8, n), NaN outside
+    brightest = np.nanmax(neighbours, axis=0)
+    values = frame[rows, cols]
+    # on the noise model's variance-stabilising scale, where the noise is 1 at every level:
+    # the difference of two pixels has sigma sqrt(2)
+    scale = _stabiliser(noise)
+    out = scale(values) - scale(brightest) > sigmas * np.sqrt(2.0)
+    if spot is not None and radius > 0:
+        out &= np.hypot(cols - spot[0], rows - spot[1]) > radius
+    if not out.any():
+        return 0
+    frame[rows[out], cols[out]] = np.nanmedian(neighbours[:, out], axis=0)
+    return int(out.sum())
+
+
+__all__ = ["OUTLIER_SIGMAS", "SPOT_RADII", "clamp_isolated", "spot_radius"]

@@ -49,7 +49,7 @@ from ilt.isf.fine import (
     write_fine,
 )
 from ilt.isf.lambertian import check_lambertian
-from ilt.isf.outliers import OUTLIER_SIGMAS, clamp_isolated, spot_radius
+from ilt.isf.outliers import OUTLIER_SIGMAS, clamp_isolated, screening_model, spot_radius
 from ilt.isf.noise import (
     SAMPLE_FRAMES,
     T_VAR_FILE,
@@ -507,10 +507,11 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             raise BuildError(str(exc)) from None
         noise = fit_frame_noise(frames, on_grid[sample])
         # isolated outliers (fireflies) inflate the fit, and an inflated model lets them
-        # through: fitted again on the frames without those it finds (twice at most; 1e-3 of
-        # the pixels at 20x the 99.9th percentile made it 2.7x too noisy and hid every one)
-        for _ in range(2):
-            if noise is None or not sum(clamp_isolated(f, noise, on_grid[i], discs[i]) for f, i in zip(frames, sample)):
+        # through: fitted again on the frames without those that its faint knots find
+        # (ilt.isf.outliers.screening_model), then without those the new fit finds
+        for model in (screening_model, lambda fitted: fitted):
+            if noise is None or not sum(clamp_isolated(f, model(noise), on_grid[i], discs[i])
+                                        for f, i in zip(frames, sample)):
                 break
             noise = fit_frame_noise(frames, on_grid[sample])
         del frames

@@ -4,6 +4,7 @@ import json
 import shutil
 
 import numpy as np
+import pytest
 
 from ilt.io.exr import read_exr, write_exr
 from ilt.isf.build import build_isf
@@ -61,6 +62,19 @@ def test_photon_counts_are_judged_on_their_own_scale():
     around[around > 2 * quantum] = 0.0                  # its neighbours: none above 2 photons
     frame[200, 250] = 200 * quantum
     assert clamp_isolated(frame, counts) == 1 and frame[200, 250] <= 2 * quantum
+
+
+def test_a_screening_model_drops_the_bright_knots_fireflies_inflate():
+    """Photon noise (Var = 0.2 x) fitted with its two brightest bins inflated 50x: the
+    screening model keeps the 8 faint knots of 10 and extends them with their own slope."""
+    from ilt.isf.outliers import screening_model
+
+    levels = tuple(float(x) for x in range(10))
+    variances = tuple(0.2 * x * (50.0 if x >= 8 else 1.0) for x in levels)
+    fitted = FrameNoise(levels, variances, 8, 10**5, 10, 40.0)
+    screen = screening_model(fitted)
+    assert screen.levels == levels[:8] and screen.slope == pytest.approx(0.2)
+    assert screen.pixel_variance(np.array([20.0]))[0] == pytest.approx(4.0)
 
 
 def test_the_spot_window_and_frames_without_a_noise_model_are_left_alone():

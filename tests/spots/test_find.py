@@ -167,3 +167,34 @@ def test_median_helpers_are_numpys_and_scipys(shape):
     assert np.array_equal(_median_filter(grid, ky, kx), median_filter(grid, size=(ky, kx), mode="nearest"))
     for a in (grid.ravel(), grid.ravel()[1:], grid):
         assert np.array_equal(_median(a), np.median(a, axis=-1))
+
+
+def test_fireflies_are_neither_the_spot_nor_a_second_one():
+    """A spot (sigma 0.8 px) in noisy indirect light, and isolated pixels (fireflies, hot
+    pixels): one 3x the spot's peak, five at half of it. The spot is found where it is,
+    unflagged, and the caller's frame is not touched; a real second spot (a reflection, the
+    same blur) is still flagged ``multiple``."""
+    rng = np.random.default_rng(4)
+    shape = (120, 160)
+    y, x = np.mgrid[:120, :160]
+    light = 20.0 + 10.0 * np.exp(-((x - 100) ** 2 + (y - 50) ** 2) / (2 * 30.0**2))
+    spot = blob(shape, 60.3, 70.6, 0.8, amp=2e4)
+    frame = (light + spot + rng.normal(0, 1.0, shape)).astype(np.float32)
+    peak = float(spot.max())
+    for k, (yy, xx) in enumerate([(10, 10), (30, 140), (100, 20), (90, 130), (15, 80), (110, 150)]):
+        frame[yy, xx] += 3 * peak if k == 0 else 0.5 * peak
+    before = frame.copy()
+    found = find_spot(frame)
+    assert found.flags == {} and abs(found.x - 60.3) < 0.05 and abs(found.y - 70.6) < 0.05
+    np.testing.assert_array_equal(frame, before)
+    reflection = frame + blob(shape, 130.0, 30.0, 0.8, amp=0.3 * 2e4).astype(np.float32)
+    assert "multiple" in find_spot(reflection).flags
+
+
+def test_a_spot_sharper_than_a_pixel_is_still_the_spot():
+    """A spot of sigma 0.25 px is one pixel far above its neighbours, as a firefly is; with
+    no other light in the frame it is the spot."""
+    rng = np.random.default_rng(5)
+    frame = (blob((60, 80), 40.0, 30.0, 0.25, amp=5e3) + rng.normal(0, 1.0, (60, 80))).astype(np.float32)
+    found = find_spot(frame)
+    assert "none" not in found.flags and abs(found.x - 40.0) < 0.3 and abs(found.y - 30.0) < 0.3

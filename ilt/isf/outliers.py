@@ -49,6 +49,38 @@ def screening_model(noise):
     return FrameNoise(tuple(levels), tuple(variances), noise.frames, noise.pixels, noise.bins, max(slope, 0.0))
 
 
+_BUFFERS: dict = {}
+
+
+def _buffers(shape) -> tuple[np.ndarray, np.ndarray]:
+    """Two (H, W) float32 work arrays for the screens, kept per process for frames of one
+    shape (96 MB at 12 Mpx; allocated afresh, each frame's page faults cost more than the
+    test). The exact test reads the frame itself."""
+    if shape not in _BUFFERS:
+        _BUFFERS.clear()
+        _BUFFERS[shape] = (np.empty(shape, np.float32), np.empty(shape, np.float32))
+    return _BUFFERS[shape]
+
+
+def _at(frame: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``frame[rows, cols]``, NaN outside the frame."""
+    height, width = frame.shape
+    inside = (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
+    out = np.full(rows.shape, np.nan)
+    out[inside] = frame[rows[inside], cols[inside]]
+    return out
+
+
+def _variance_line(noise) -> tuple[float, float]:
+    """(a, b) with ``a + b x <= Var(x)`` for every level x >= 0 of the model: a line under
+    its knots, and under its slope above them."""
+    levels, variances = np.asarray(noise.levels), np.asarray(noise.variances)
+    dark = max(float(noise.pixel_variance(np.zeros(1))[0]), 0.0)
+    positive = levels > 0
+    rises = (variances[positive] - dark) / levels[positive] if positive.any() else np.array([0.0])
+    return dark, max(0.0, min(float(rises.min()), float(noise.slope)))
+
+
 _STABILISERS: dict = {}
 
 
@@ -87,33 +119,45 @@ def clamp_isolated(frame: np.ndarray, noise, spot: np.ndarray | None = None, rad
                    sigmas: float = OUTLIER_SIGMAS) -> int:
     """Replace, in place, each pixel of ``frame`` (H, W) that stands more than ``sigmas``
     noise sigmas (of the difference) above the brightest of its 8 neighbours by the median
-    of those 8; the
-    pixels within ``radius`` of ``spot`` (x, y) are left alone. ``noise``: the frames'
-    :class:`ilt.isf.noise.FrameNoise`, or None (then nothing is done). Returns how many
-    pixels were replaced.
+    of those 8; the pixels within ``radius`` of ``spot`` (x, y) are left alone. ``noise``:
+    the frames' :class:`ilt.isf.noise.FrameNoise`, or None (then nothing is done). Returns
+    how many pixels were replaced.
 
-    At the frame's edge a pixel is judged on the neighbours it has. Cost: a screen on the
-    two horizontal neighbours (a few passes over the frame, in place of a 3 x 3 maximum
-    filter that took 0.34 s at 12 Mpx), then the exact test on the few pixels it leaves."""
-    if noise is None or frame.ndim != 2 or frame.size < 2:
+    At the frame's edge a pixel is judged on the neighbours it has. Cost: screens on the two
+    horizontal neighbours in work arrays kept per process (a 3 x 3 maximum filter took
+    0.34 s at 12 Mpx), then the exact test on the few pixels they leave
+    (benchmarks/bench_outliers.py)."""
+    if noise is None or frame.ndim != 2 or frame.shape[1] < 2:
         return 0
     height, width = frame.shape
-    floor = sigmas * float(np.sqrt(max(min(noise.variances), 0.0)))
-    # a pixel above both horizontal neighbours (or the one it has, at the frame's edge) by the
-    # least sigma there is: the few pixels the exact test then reads all neighbours of
-    padded = np.pad(frame, 1, constant_values=np.nan)
-    with np.errstate(invalid="ignore"):
-        sides = np.fmax(padded[1:-1, :-2], padded[1:-1, 2:])
-        candidates = np.flatnonzero(frame - sides > floor)
+    sides, diff = _buffers(frame.shape)
+    # a pixel above both horizontal neighbours (the one it has, at the frame's left and right
+    # edges) by the least sigma there is, then by a line under the model's variance, then on
+    # the stabilised scale: each screen keeps every pixel the exact test can flag
+    np.maximum(frame[:, :-2], frame[:, 2:], out=sides[:, 1:-1])
+    sides[:, 0], sides[:, -1] = frame[:, 1], frame[:, -2]
+    np.subtract(frame, sides, out=diff)
+    # on the stabilised scale a difference d from level s is at most d / sigma(s) <= d / the
+    # least sigma, and with photon noise alone (no sigma at zero, no level below it) at most
+    # 2 sqrt(d / slope): so no pixel the test flags is under this floor
+    least = max(min(noise.variances), 0.0)
+    floor = sigmas * np.sqrt(2.0 * least) if least > 0 else sigmas**2 * noise.slope / 2.0
+    candidates = np.flatnonzero(diff > floor)
+    if candidates.size:
+        dark, per_level = _variance_line(noise)
+        level = np.maximum(sides.flat[candidates], 0.0)
+        candidates = candidates[np.square(diff.flat[candidates]) > 2.0 * sigmas**2 * (dark + per_level * level)]
+    scale = _stabiliser(noise)
+    if candidates.size:
+        candidates = candidates[scale(frame.flat[candidates]) - scale(sides.flat[candidates]) > sigmas * np.sqrt(2.0)]
     if candidates.size == 0:
         return 0
     rows, cols = np.divmod(candidates, width)
-    neighbours = np.stack([padded[rows + 1 + dy, cols + 1 + dx] for dy, dx in _OFFSETS])    # (8, n), NaN outside
+    neighbours = np.stack([_at(frame, rows + dy, cols + dx) for dy, dx in _OFFSETS])    # (8, n), NaN outside
     brightest = np.nanmax(neighbours, axis=0)
     values = frame[rows, cols]
     # on the noise model's variance-stabilising scale, where the noise is 1 at every level:
     # the difference of two pixels has sigma sqrt(2)
-    scale = _stabiliser(noise)
     out = scale(values) - scale(brightest) > sigmas * np.sqrt(2.0)
     if spot is not None and radius > 0:
         out &= np.hypot(cols - spot[0], rows - spot[1]) > radius

@@ -16,7 +16,7 @@ import numpy as np
 
 #: a pixel this many sigmas above the brightest of its eight neighbours is an isolated
 #: outlier (on the noise model's variance-stabilising scale: :func:`_stabiliser`)
-OUTLIER_SIGMAS = 8.0
+OUTLIER_SIGMAS = 6.0
 
 #: the laser spot's own disc is left alone (its peak pixel can stand far above its
 #: neighbours): this many times the radius of the spot's area, and at least this many pixels

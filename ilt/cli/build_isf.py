@@ -41,6 +41,9 @@ from ilt.workspace.options import BUILD_ISF
                    "fitted in the same pass (0: flat cells; 2 stores 5 m^2 float32 against 2 m^2 for 1).")
 @stage_option(BUILD_ISF["no_fine"], help="Do not build fine/: 'ilt decompose' then splits photos at the "
                                         "m samples only.")
+@stage_option(BUILD_ISF["fold_cells"], help="End the cells at the scene's concave folds, where the light of the "
+                                             "beams farther than a spot spacing has a valley (noisy frames; one "
+                                             "more pass over the frames; docs/fullres.md, 'A spot on a fold').")
 @click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",
               help="An earlier build of the same scene and camera (its ISF directory, or its cells.exr): every "
                    "pixel its cells covered stays covered, so that a denser rescan covers at least what it "
@@ -52,7 +55,7 @@ from ilt.workspace.options import BUILD_ISF
 @force_option
 @json_option
 def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, max_cell_radius, fine_degree,
-            no_fine, keep_covered, workers, cluster, workspace, force, as_json):
+            no_fine, fold_cells, keep_covered, workers, cluster, workspace, force, as_json):
     """Build the ISF directory (-o, default WORKSPACE/isf) from the beam frames in HDR_DIR
     and the spots in SPOTS_DIR (from 'ilt centroids').
 
@@ -83,5 +86,5 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
                             lit_fraction=lit_fraction, max_cell_radius=max_cell_radius, executor=executor,
                             workers=workers,
                             fine_degree=None if no_fine else fine_degree, keep_covered=keep_covered,
-                            progress=update, force=force)
+                            fold_cells=fold_cells, progress=update, force=force)
     emit(as_json, summary, [summary["output"]])

@@ -442,7 +442,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
               max_cell_radius: float | None = None, executor=None, workers: int | None = None,
               chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
               fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True, lambertian: bool = True,
-              keep_covered: str | os.PathLike | None = None) -> dict:
+              keep_covered: str | os.PathLike | None = None, fold_cells: bool = False) -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
@@ -466,6 +466,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     ``keep_covered``: an earlier build of the same scene (its ISF directory, a directory
     holding its ``cells.exr``, or that file): every pixel its cells covered stays covered
     (:func:`earlier_coverage`), so that a denser scan covers at least what it did.
+    ``fold_cells`` (cell sampling, noisy frames): the cells end at the concave folds the
+    frames show (:mod:`ilt.isf.folds`), at the cost of one more pass over the frames.
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
@@ -545,6 +547,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                         "('ilt centroids' writes it)", spots_dir / SUM_FILE, max_cell_radius)
         # the pool idles meanwhile: the queries take its cores
         labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius, threads=workers or -1)
+        folds = None
+        if fold_cells:
+            labels, folds = _fold_cells(hdr, plan, on_grid, labels, noise, executor, workers, chunk)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
@@ -649,6 +654,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             del entry_noise.out
             write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} of the beam frames, spread over the scan")
             fields["noise"] = {"entry_sigma": entry_noise.entry_sigma, "frames": noise.frames}
+        if fold_cells and labels is not None:
+            fields["folds"] = folds
         if noise is not None:
             fields["outliers"] = _outlier_record(clamped, plan)
             if clamped.any():
@@ -671,6 +678,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")
         parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
                       "max_cell_radius": max_cell_radius, "fine_degree": fine_degree, "lit_sigmas": LIT_SIGMAS}
+        if fold_cells:
+            parameters["fold_cells"] = True
         inputs = {str(spots_dir / SPOTS_FILE): ""}
         if (spots_dir / MANIFEST).exists():   # the spots' manifest by its hash: what `ilt status` knows a stage by
             spots_manifest = read_manifest(spots_dir)
@@ -682,6 +691,31 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             inputs[lit_info["kept_from"]["cells"]] = earlier_fingerprint
         write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields}, hashed=hashed)
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
+
+
+def _fold_cells(hdr, plan, on_grid, labels, noise, executor, workers, chunk) -> tuple[np.ndarray, dict]:
+    """``--fold-cells``: the cells ended at the concave folds the frames show
+    (:mod:`ilt.isf.folds`; one more pass over the frames), and the manifest's record."""
+    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, far_chunk, fold_cells, spacing_of, valley_barriers
+
+    if noise is None:
+        log.warning("--fold-cells: the frames show no noise to judge folds against (noise-free frames): cells "
+                    "as without it")
+        return labels, {"applied": False, "reason": "no noise model (noise-free frames)"}
+    spacing = spacing_of(on_grid)
+    row = {b: i for i, b in enumerate(plan)}
+    tasks = [([hdr.files[b] for b in c], hdr.frame_shape, on_grid[[row[b] for b in c]], spacing)
+             for c in chunks(plan, chunk)]
+    light = count = None
+    with beam_executor(executor, workers) as ex:
+        for part_light, part_count in run_chunks(far_chunk, tasks, ex):
+            light = part_light if light is None else light + part_light
+            count = part_count if count is None else count + part_count
+    barriers = valley_barriers(light, count, noise, labels >= 0, spacing)
+    labels, record = fold_cells(labels, on_grid, barriers, spacing)
+    log.info("--fold-cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
+             record["barrier_pixels"])
+    return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW, **record}
 
 
 def _outlier_record(clamped: np.ndarray, plan: list[int]) -> dict:

@@ -1,0 +1,133 @@
+"""Cells that end at the scene's concave folds, read from the frames (``build-isf --fold-cells``).
+
+Cells are the spots' Voronoi regions, which know nothing of the surface: a spot beside a
+fold makes a cell that holds pixels of both facets, whose light differs (docs/fullres.md,
+"A spot on a fold"). The frames show the fold. The light of the beams farther than one
+spot spacing from a pixel has a valley at a concave fold: a facet lights the facet it faces
+the less, the nearer the fold, as that light leaves it at grazing angles. The near beams
+are left out because their own indirect light peaks about their spots and hides it.
+
+:func:`far_light` sums each frame where it is far from its spot (a pass over the frames).
+:func:`valley_barriers` smooths that light by a Gaussian of a quarter spacing and takes the
+larger eigenvalue of its Hessian, over its noise (the frames' noise model through the same
+filters). Barriers are its ridge pixels (local maxima across the valley) above
+:data:`FOLD_LOW` sigma, connected to ones above :data:`FOLD_SIGMAS`. :func:`fold_cells`
+gives each pixel to the nearest spot in its own region of the lit mask that the barriers
+leave (4-connected), except each spot's own disc, which stays its own (a barrier between
+a spot 2 px from a fold and its own pixels gave them to the neighbour).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: a barrier's pixels stand this many sigmas above the noise somewhere along it ...
+FOLD_SIGMAS = 4.5
+#: ... and this many everywhere
+FOLD_LOW = 3.0
+#: the Gaussian's sigma as a share of the spot spacing, and its bounds (px)
+SMOOTH_SHARE, SMOOTH_MIN, SMOOTH_MAX = 0.25, 2.0, 8.0
+
+
+def spacing_of(centroids: np.ndarray) -> float:
+    """The median distance (px) from a spot to its nearest neighbour."""
+    from scipy.spatial import cKDTree
+
+    if len(centroids) < 2:
+        return float("inf")
+    return float(np.median(cKDTree(centroids).query(centroids, k=2)[0][:, 1]))
+
+
+def far_chunk(files, shape, centres, spacing):
+    """Worker: the chunk's frames summed where farther than ``spacing`` from their own
+    spot, and how many frames count at each pixel: two (H, W) float64."""
+    from ilt.io.frames import load_frame
+
+    light, count = np.zeros(shape), np.zeros(shape)
+    frame = np.empty(shape)
+    rows, cols = np.ogrid[:shape[0], :shape[1]]
+    for path, (x, y) in zip(files, centres):
+        load_frame(path, shape, out=frame)
+        far = (cols - x) ** 2 + (rows - y) ** 2 > spacing**2
+        light += np.where(far, frame, 0.0)
+        count += far
+    return light, count
+
+
+def valley_barriers(light: np.ndarray, count: np.ndarray, noise, lit: np.ndarray, spacing: float) -> np.ndarray:
+    """(H, W) bool: the ridge pixels of the far light's valleys (module docstring), inside ``lit``."""
+    from scipy.ndimage import gaussian_filter, label
+
+    sigma = float(np.clip(SMOOTH_SHARE * spacing, SMOOTH_MIN, SMOOTH_MAX))
+    smooth = gaussian_filter(light, sigma)
+    gy, gx = np.gradient(smooth)
+    gyy, gyx = np.gradient(gy)
+    gxx = np.gradient(gx, axis=1)
+    valley = 0.5 * (gxx + gyy) + np.sqrt(0.25 * (gxx - gyy) ** 2 + gyx**2)
+    # its noise: each pixel's variance (the frames counted there at the dark level, and the
+    # photon noise of their light) through the filters' squared weights
+    dark = float(noise.pixel_variance(np.zeros(1))[0])
+    variance = gaussian_filter(count * dark + noise.slope * np.maximum(light, 0.0), sigma)
+    z = valley / np.sqrt(_weight(sigma) * np.maximum(variance, 1e-300))
+    # a local maximum across the valley (along the eigenvector of the larger eigenvalue)
+    theta = 0.5 * np.arctan2(2.0 * gyx, gxx - gyy)
+    dx, dy = np.rint(np.cos(theta)).astype(int), np.rint(np.sin(theta)).astype(int)
+    height, width = z.shape
+    rows, cols = np.mgrid[:height, :width]
+    ahead = z[np.clip(rows + dy, 0, height - 1), np.clip(cols + dx, 0, width - 1)]
+    behind = z[np.clip(rows - dy, 0, height - 1), np.clip(cols - dx, 0, width - 1)]
+    ridge = lit & (z >= ahead) & (z >= behind)
+    # (the filters mirror the light at the frame's edge: where it falls towards the edge
+    # that makes a valley along it, a barrier that encloses no spot, and moves no pixel)
+    weak, strong = ridge & (z > FOLD_LOW), ridge & (z > FOLD_SIGMAS)
+    regions, _ = label(weak, np.ones((3, 3), bool))
+    keep = np.zeros(regions.max() + 1, bool)
+    keep[np.unique(regions[strong])] = True
+    keep[0] = False
+    return keep[regions]
+
+
+def _weight(sigma: float) -> float:
+    """The sum of squares of the filters' weights (Gaussian, then the second difference):
+    a white noise's variance in the valley-ness, per unit of a pixel's."""
+    from scipy.ndimage import gaussian_filter
+
+    size = 2 * int(np.ceil(5 * sigma)) + 5
+    delta = np.zeros((size, size))
+    delta[size // 2, size // 2] = 1.0
+    second = np.gradient(np.gradient(gaussian_filter(delta, sigma), axis=1), axis=1)
+    return float(np.sum(second**2))
+
+
+def fold_cells(labels: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, spacing: float) -> tuple[np.ndarray, dict]:
+    """The cells with ``barriers`` (module docstring): (H, W) labels and a record."""
+    from scipy.ndimage import label
+    from scipy.spatial import cKDTree
+
+    height, width = labels.shape
+    lit = labels >= 0
+    regions, count = label(lit & ~barriers)                                   # 4-connected
+    spot = np.clip(np.floor(centroids + 0.5).astype(int), 0, [width - 1, height - 1])
+    spot_region = regions[spot[:, 1], spot[:, 0]]
+    inside = np.flatnonzero(lit)
+    disc = max(3.0, SMOOTH_SHARE * spacing)
+    near, owner = cKDTree(centroids).query(np.column_stack([inside % width, inside // width]),
+                                           distance_upper_bound=disc * (1 + 1e-9))
+    own = np.zeros(lit.size, bool)
+    own[inside[np.isfinite(near)]] = True
+    out = labels.copy().ravel()
+    flat_regions = regions.ravel()
+    for r in range(1, count + 1):
+        mine = np.flatnonzero(spot_region == r)
+        if mine.size == 0:
+            continue
+        pixels = np.flatnonzero((flat_regions == r) & ~own)
+        if pixels.size:
+            _, nearest = cKDTree(centroids[mine]).query(np.column_stack([pixels % width, pixels // width]))
+            out[pixels] = mine[nearest]
+    out = out.reshape(labels.shape)
+    return out, {"barrier_pixels": int(barriers.sum()), "moved_pixels": int(np.count_nonzero(out != labels)),
+                 "regions": int(count)}
+
+
+__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "far_chunk", "fold_cells", "spacing_of", "valley_barriers"]

@@ -1,0 +1,102 @@
+"""Cells that end at the concave folds the frames show (ilt.isf.folds, build-isf --fold-cells)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from ilt.isf.folds import fold_cells, valley_barriers
+from ilt.isf.noise import FrameNoise
+
+GAIN = 4.0
+NOISE = FrameNoise((0.0, 1e5), (0.25, 0.25 + 1e5 / GAIN), 8, 10**6, 2, 1.0 / GAIN)
+
+
+def _far_light(rng, valley: bool, shape=(160, 200), frames=100):
+    """The far beams' light of ``frames`` frames: smooth, and with ``valley`` a V-shaped dip
+    along the slanted line y = 0.5 x + 40 (a concave fold seen obliquely), with the frames'
+    photon and read noise summed."""
+    y, x = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    per_frame = 30.0 + 10.0 * np.exp(-((x - 120) ** 2 + (y - 90) ** 2) / (2 * 60.0**2))
+    if valley:
+        distance = np.abs(y - 0.5 * x - 40) / np.hypot(1, 0.5)
+        per_frame = per_frame * np.minimum(1.0, 0.3 + distance / 12.0)
+    light = frames * per_frame
+    noisy = rng.poisson(light * GAIN) / GAIN + rng.normal(0, 0.5 * np.sqrt(frames), shape)
+    return noisy, np.full(shape, float(frames)), distance if valley else None
+
+
+@pytest.mark.parametrize("seed", [7, 8])
+def test_a_valley_is_found_along_its_line_and_noise_moves_no_pixel(seed):
+    """The fold's line is found along its whole length, to 1 px. Pure noise leaves at most
+    short barriers that enclose nothing: with spots on a grid, no pixel changes cell."""
+    from ilt.isf.cells import voronoi_cells
+
+    rng = np.random.default_rng(seed)
+    lit = np.ones((160, 200), bool)
+    light, count, distance = _far_light(rng, True)
+    barriers = valley_barriers(light, count, NOISE, lit, spacing=16.0)
+    on_line = barriers & (distance < 1.0)
+    assert np.unique(np.nonzero(on_line)[1]).size >= 0.95 * 200
+    flat, count, _ = _far_light(rng, False)
+    stray = valley_barriers(flat, count, NOISE, lit, spacing=16.0)
+    gx, gy = np.meshgrid(np.arange(8.0, 200, 16), np.arange(8.0, 160, 16))
+    centroids = np.column_stack([gx.ravel(), gy.ravel()])
+    labels = voronoi_cells(centroids, (160, 200))
+    assert fold_cells(labels, centroids, stray, 16.0)[1]["moved_pixels"] == 0
+
+
+def test_cells_end_at_a_barrier_and_each_spot_keeps_its_disc():
+    """Two spots either side of x = 50, spot A 2 px left of a barrier at x = 52: the pixels
+    past the barrier go to spot B, but A's own disc (3 px) stays A's."""
+    from ilt.isf.cells import voronoi_cells
+
+    centroids = np.array([[50.0, 20.0], [80.0, 20.0]])
+    labels = voronoi_cells(centroids, (40, 120))
+    barriers = np.zeros((40, 120), bool)
+    barriers[:, 52] = True
+    out, record = fold_cells(labels, centroids, barriers, spacing=12.0)
+    rows, cols = np.mgrid[:40, :120]
+    disc = np.hypot(cols - 50, rows - 20) <= 3.0
+    assert np.all(out[(cols > 52) & ~disc] == 1) and np.all(out[cols < 52] == 0)
+    assert np.all(out[disc] == 0)
+    assert np.all(out[:, 52] == labels[:, 52])              # the barrier's own pixels: as they were
+    assert record["moved_pixels"] == int(np.count_nonzero(out != labels)) > 0
+
+
+def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
+    """Noise-free frames: nothing to judge a valley against, the cells as without the
+    option and the manifest says why. Noisy frames: the same lit pixels, the moved ones
+    counted."""
+    from ilt.io.exr import read_exr
+    from ilt.isf.build import build_isf
+    from tests.isf.test_build import run
+    from tests.isf.test_noise import _noisy
+
+    sim = tmp_path / "sim"
+    run("simulate", "m", "--frames", "--beams", 32, "--px-per-beam", 12, "-o", sim)
+    run("centroids", sim / "hdr", "-o", tmp_path / "spots", "--workers", 1)
+    build_isf(sim / "hdr", tmp_path / "spots", tmp_path / "clean", workers=1, fold_cells=True)
+    folds = json.loads((tmp_path / "clean" / "manifest.json").read_text())["folds"]
+    assert folds["applied"] is False and "noise" in folds["reason"]
+    import shutil
+    noisy = tmp_path / "noisy"
+    shutil.copytree(sim / "hdr", noisy)
+    rng = np.random.default_rng(3)
+    frames = sorted((sim / "hdr").glob("beam-*.exr"))
+    gain = 2e4 / max(float(read_exr(f)[0].max()) for f in frames)
+    from ilt.io.exr import write_exr
+    for f in frames:
+        image, attributes = read_exr(f)
+        write_exr(noisy / f.name, _noisy(image.astype(np.float64), gain, rng).astype(np.float32), ["Y"],
+                  {k: v for k, v in attributes.items() if k.startswith("ilt:")})
+    run("centroids", noisy, "-o", tmp_path / "nspots", "--workers", 1)
+    build_isf(noisy, tmp_path / "nspots", tmp_path / "plain", workers=1)
+    build_isf(noisy, tmp_path / "nspots", tmp_path / "fold", workers=1, fold_cells=True)
+    a = read_exr(tmp_path / "plain" / "cells.exr")[0][..., 0]
+    b = read_exr(tmp_path / "fold" / "cells.exr")[0][..., 0]
+    manifest = json.loads((tmp_path / "fold" / "manifest.json").read_text())
+    assert manifest["folds"]["applied"] is True and manifest["parameters"]["fold_cells"] is True
+    assert np.array_equal(a >= 0, b >= 0)
+    assert manifest["folds"]["moved_pixels"] == int(np.count_nonzero(a != b))
+    assert "fold_cells" not in json.loads((tmp_path / "plain" / "manifest.json").read_text())["parameters"]

@@ -76,7 +76,9 @@ def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     sim = tmp_path / "sim"
     run("simulate", "m", "--frames", "--beams", 32, "--px-per-beam", 12, "-o", sim)
     run("centroids", sim / "hdr", "-o", tmp_path / "spots", "--workers", 1)
-    build_isf(sim / "hdr", tmp_path / "spots", tmp_path / "clean", workers=1, fold_cells=True)
+    result = run("build-isf", sim / "hdr", tmp_path / "spots", "-o", tmp_path / "clean", "--fold-cells",
+                 "--workers", 1)
+    assert "--fold-cells: the frames show no noise to judge folds against" in result.output
     folds = json.loads((tmp_path / "clean" / "manifest.json").read_text())["folds"]
     assert folds["applied"] is False and "noise" in folds["reason"]
     import shutil

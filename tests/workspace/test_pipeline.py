@@ -240,3 +240,13 @@ def test_stage_values_are_checked_as_the_command_line_checks_them(tmp_path, sect
     (tmp_path / "ok.toml").write_text(run_rig_toml(16, 8, "", "[merge]\nmargin = 0\n"))
     margin = load_run_config(tmp_path / "ok.toml").merge["margin"]
     assert margin == 0 and isinstance(margin, int)
+
+
+def test_an_option_added_later_changes_no_stage_made_before_it():
+    """build-isf's --fold-cells at its default leaves the stage's fingerprint as it was
+    before the option existed (a workspace made then is not rebuilt); set, it counts."""
+    from ilt.workspace.pipeline import fingerprinted
+
+    before = {"sampling": "cell", "fine_degree": 1}
+    assert fingerprinted({**before, "fold_cells": False, "workers": 2}) == before
+    assert fingerprinted({**before, "fold_cells": True, "workers": 2}) == {**before, "fold_cells": True}

@@ -71,7 +71,7 @@ def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     from ilt.io.exr import read_exr
     from ilt.isf.build import build_isf
     from tests.isf.test_build import run
-    from tests.isf.test_noise import _noisy
+    from tests.isf.test_noise import noisy_frames
 
     sim = tmp_path / "sim"
     run("simulate", "m", "--frames", "--beams", 32, "--px-per-beam", 12, "-o", sim)
@@ -81,17 +81,8 @@ def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     assert "--fold-cells: the frames show no noise to judge folds against" in result.output
     folds = json.loads((tmp_path / "clean" / "manifest.json").read_text())["folds"]
     assert folds["applied"] is False and "noise" in folds["reason"]
-    import shutil
     noisy = tmp_path / "noisy"
-    shutil.copytree(sim / "hdr", noisy)
-    rng = np.random.default_rng(3)
-    frames = sorted((sim / "hdr").glob("beam-*.exr"))
-    gain = 2e4 / max(float(read_exr(f)[0].max()) for f in frames)
-    from ilt.io.exr import write_exr
-    for f in frames:
-        image, attributes = read_exr(f)
-        write_exr(noisy / f.name, _noisy(image.astype(np.float64), gain, rng).astype(np.float32), ["Y"],
-                  {k: v for k, v in attributes.items() if k.startswith("ilt:")})
+    noisy_frames(sim / "hdr", noisy, np.random.default_rng(3))
     run("centroids", noisy, "-o", tmp_path / "nspots", "--workers", 1)
     build_isf(noisy, tmp_path / "nspots", tmp_path / "plain", workers=1)
     build_isf(noisy, tmp_path / "nspots", tmp_path / "fold", workers=1, fold_cells=True)

@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -100,14 +101,7 @@ def test_build_isf_carries_the_noise_into_t_and_decompose_uses_it(tmp_path):
 
     sim, noisy = tmp_path / "sim", tmp_path / "noisy"
     run("simulate", "m", "--frames", "--beams", 32, "--px-per-beam", 12, "-o", sim)
-    rng = np.random.default_rng(3)
-    frames = sorted((sim / "hdr").glob("beam-*.exr"))
-    gain = 2e4 / max(float(read_exr(f)[0].max()) for f in frames)
-    shutil.copytree(sim / "hdr", noisy)
-    for f in frames:
-        image, attributes = read_exr(f)
-        write_exr(noisy / f.name, _noisy(image.astype(np.float64), gain, rng).astype(np.float32), ["Y"],
-                  {k: v for k, v in attributes.items() if k.startswith("ilt:")})
+    frames = noisy_frames(sim / "hdr", noisy, np.random.default_rng(3))
     run("centroids", noisy, "-o", tmp_path / "spots", "--workers", 1)
     build_isf(noisy, tmp_path / "spots", tmp_path / "isf", workers=1)
     record = read_noise(tmp_path / "isf")
@@ -143,6 +137,19 @@ def test_build_isf_carries_the_noise_into_t_and_decompose_uses_it(tmp_path):
         "--no-regularise")
     plain = json.loads((tmp_path / "plain" / "room" / "summary.json").read_text())["operators"]
     assert plain["noise"] == pytest.approx(record["entry_sigma"]) and plain["regularisation_width"] == 0
+
+
+def noisy_frames(hdr, out, rng, electrons=2e4):
+    """``hdr``'s beam frames with photon and read noise (``electrons`` at the brightest
+    pixel of the scan) written to ``out`` as ilt's frames; the clean frames' paths."""
+    frames = sorted(Path(hdr).glob("beam-*.exr"))
+    gain = electrons / max(float(read_exr(f)[0].max()) for f in frames)
+    shutil.copytree(hdr, out)
+    for f in frames:
+        image, attributes = read_exr(f)
+        write_exr(out / f.name, _noisy(image.astype(np.float64), gain, rng).astype(np.float32), ["Y"],
+                  {k: v for k, v in attributes.items() if k.startswith("ilt:")})
+    return frames
 
 
 def _two_cells(rng, slope, pixel_sigma):

@@ -48,6 +48,7 @@ from ilt.isf.fine import (
     frames_inputs,
     write_fine,
 )
+from ilt.isf.folds import spacing_of
 from ilt.isf.lambertian import check_lambertian
 from ilt.isf.outliers import OUTLIER_SIGMAS, clamp_isolated, screening_model, spot_radius
 from ilt.isf.noise import (
@@ -541,15 +542,14 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         # Without the frames' sum there is no lit mask: then 2 spot spacings, as before
         if lit is None:
             if max_cell_radius is None:
-                nn = cKDTree(on_grid).query(on_grid, k=2)[0][:, 1]
-                max_cell_radius = 2.0 * float(np.median(nn))
+                max_cell_radius = 2.0 * spacing_of(on_grid)
             log.warning("%s: missing, so no lit mask: every pixel within %.3g px of a spot joins its cell "
                         "('ilt centroids' writes it)", spots_dir / SUM_FILE, max_cell_radius)
         # the pool idles meanwhile: the queries take its cores
         labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius, threads=workers or -1)
         folds = None
         if fold_cells:
-            labels, folds = _fold_cells(hdr, plan, on_grid, labels, noise, executor, workers, chunk)
+            labels, folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
@@ -693,10 +693,10 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
 
 
-def _fold_cells(hdr, plan, on_grid, labels, noise, executor, workers, chunk) -> tuple[np.ndarray, dict]:
+def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk) -> tuple[np.ndarray, dict]:
     """``--fold-cells``: the cells ended at the concave folds the frames show
     (:mod:`ilt.isf.folds`; one more pass over the frames), and the manifest's record."""
-    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, far_chunk, fold_cells, spacing_of, valley_barriers
+    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, far_chunk, far_counts, fold_cells, spacing_of, valley_barriers
 
     if noise is None:
         log.warning("--fold-cells: the frames show no noise to judge folds against (noise-free frames): cells "
@@ -704,14 +704,15 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, executor, workers, chunk) -> 
         return labels, {"applied": False, "reason": "no noise model (noise-free frames)"}
     spacing = spacing_of(on_grid)
     row = {b: i for i, b in enumerate(plan)}
-    tasks = [([hdr.files[b] for b in c], hdr.frame_shape, on_grid[[row[b] for b in c]], spacing)
-             for c in chunks(plan, chunk)]
-    light = count = None
+    tasks = []
+    for c in chunks(plan, chunk):
+        rows = [row[b] for b in c]
+        tasks.append(([hdr.files[b] for b in c], hdr.frame_shape, on_grid[rows], spacing, noise, discs[rows]))
+    light = np.zeros(hdr.frame_shape)
     with beam_executor(executor, workers) as ex:
-        for part_light, part_count in run_chunks(far_chunk, tasks, ex):
-            light = part_light if light is None else light + part_light
-            count = part_count if count is None else count + part_count
-    barriers = valley_barriers(light, count, noise, labels >= 0, spacing)
+        for part in run_chunks(far_chunk, tasks, ex):
+            light += part
+    barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), noise, labels >= 0, spacing)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
     log.info("--fold-cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
              record["barrier_pixels"])

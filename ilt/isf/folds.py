@@ -38,20 +38,38 @@ def spacing_of(centroids: np.ndarray) -> float:
     return float(np.median(cKDTree(centroids).query(centroids, k=2)[0][:, 1]))
 
 
-def far_chunk(files, shape, centres, spacing):
-    """Worker: the chunk's frames summed where farther than ``spacing`` from their own
-    spot, and how many frames count at each pixel: two (H, W) float64."""
+def far_chunk(files, shape, centres, spacing, noise=None, discs=None):
+    """Worker: the chunk's frames summed where farther than ``spacing`` from their own spot,
+    (H, W) float64, each frame's isolated outliers replaced first as build-isf's own pass
+    replaces them (:func:`ilt.isf.outliers.clamp_isolated`, with ``noise`` and each spot's
+    disc radius in ``discs``): a firefly left in would read as a valley's rim."""
     from ilt.io.frames import load_frame
+    from ilt.isf.outliers import clamp_isolated
 
-    light, count = np.zeros(shape), np.zeros(shape)
+    light = np.zeros(shape)
     frame = np.empty(shape)
     rows, cols = np.ogrid[:shape[0], :shape[1]]
-    for path, (x, y) in zip(files, centres):
+    for k, (path, (x, y)) in enumerate(zip(files, centres)):
         load_frame(path, shape, out=frame)
-        far = (cols - x) ** 2 + (rows - y) ** 2 > spacing**2
-        light += np.where(far, frame, 0.0)
-        count += far
-    return light, count
+        if noise is not None:
+            clamp_isolated(frame, noise, centres[k], float(discs[k]))
+        light += np.where((cols - x) ** 2 + (rows - y) ** 2 > spacing**2, frame, 0.0)
+    return light
+
+
+def far_counts(centroids: np.ndarray, shape, spacing: float) -> np.ndarray:
+    """(H, W) float64: how many frames count in the far light at each pixel (those whose
+    spot is farther than ``spacing``): every frame less the discs about the spots."""
+    count = np.full(shape, float(len(centroids)))
+    reach = int(np.ceil(spacing))
+    for x, y in centroids:
+        r0, r1 = max(0, int(np.floor(y)) - reach), min(shape[0], int(np.ceil(y)) + reach + 1)
+        c0, c1 = max(0, int(np.floor(x)) - reach), min(shape[1], int(np.ceil(x)) + reach + 1)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        rows, cols = np.ogrid[r0:r1, c0:c1]
+        count[r0:r1, c0:c1] -= (cols - x) ** 2 + (rows - y) ** 2 <= spacing**2
+    return count
 
 
 def valley_barriers(light: np.ndarray, count: np.ndarray, noise, lit: np.ndarray, spacing: float) -> np.ndarray:
@@ -130,4 +148,4 @@ def fold_cells(labels: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, 
                  "regions": int(count)}
 
 
-__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "far_chunk", "fold_cells", "spacing_of", "valley_barriers"]
+__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "far_chunk", "far_counts", "fold_cells", "spacing_of", "valley_barriers"]

@@ -93,3 +93,13 @@ def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     assert np.array_equal(a >= 0, b >= 0)
     assert manifest["folds"]["moved_pixels"] == int(np.count_nonzero(a != b))
     assert "fold_cells" not in json.loads((tmp_path / "plain" / "manifest.json").read_text())["parameters"]
+
+
+def test_far_counts_are_the_frames_whose_spot_is_beyond_a_spacing():
+    from ilt.isf.folds import far_counts
+
+    rng = np.random.default_rng(0)
+    centroids = rng.uniform(-5, [205, 155], (40, 2))          # some just outside the frame
+    rows, cols = np.ogrid[:150, :200]
+    brute = sum(((cols - x) ** 2 + (rows - y) ** 2 > 17.3**2).astype(float) for x, y in centroids)
+    np.testing.assert_array_equal(far_counts(centroids, (150, 200), 17.3), brute)

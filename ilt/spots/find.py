@@ -61,7 +61,7 @@ class SpotParameters:
 
 #: a pixel whose 8 neighbours all hold less than this share of its light above the
 #: background is no light through a lens (the next pixel of a pixel-integrated Gaussian spot
-#: centred on its pixel holds 5% of the peak at sigma 0.3 px, 13% at 0.5, 46% at 0.8): a
+#: centred on its pixel holds 5% of the peak at sigma 0.3 px, 23% at 0.5, 50% at 0.8): a
 #: firefly, hot pixel or cosmic-ray hit, neither taken for the spot nor counted as a second
 #: one. (A spot sharper still, sigma 0.25 px, would read so: it is kept when the frame holds
 #: no other light the spot test passes.)

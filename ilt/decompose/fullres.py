@@ -82,7 +82,7 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
         terms = per_cell[:, :, n] if planes[n] is None else _add_planes(per_cell[:, :, n], planes[n])
         phi = fine.field(residual, terms, basis)                       # Phi_n
         if n == 0:
-            scale = _rim_scale(flat[rim], phi[nearest], flat[inside][nearest])   # s, of each rim pixel
+            scale = _rim_scale(flat[rim], phi[nearest], flat[inside[nearest]])   # s, of each rim pixel
         phi_rim = scale * phi[nearest]
         if n == 0:
             out["bounce-1"] = image_of(flat[inside] - phi, flat[rim] - phi_rim)

@@ -124,11 +124,15 @@ def fold_cells(labels: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, 
 
     height, width = labels.shape
     lit = labels >= 0
+    disc = max(3.0, SMOOTH_SHARE * spacing)
     regions, count = label(lit & ~barriers)                                   # 4-connected
     spot = np.clip(np.floor(centroids + 0.5).astype(int), 0, [width - 1, height - 1])
     spot_region = regions[spot[:, 1], spot[:, 0]]
+    for i in np.flatnonzero(spot_region == 0):
+        # a spot on a barrier pixel: the region of the nearest pixel about it that is none
+        # (region 0 gave its cell to its neighbours, bar its disc)
+        spot_region[i] = _nearest_region(regions, spot[i], int(np.ceil(disc)))
     inside = np.flatnonzero(lit)
-    disc = max(3.0, SMOOTH_SHARE * spacing)
     near, owner = cKDTree(centroids).query(np.column_stack([inside % width, inside // width]),
                                            distance_upper_bound=disc * (1 + 1e-9))
     own = np.zeros(lit.size, bool)
@@ -146,6 +150,18 @@ def fold_cells(labels: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, 
     out = out.reshape(labels.shape)
     return out, {"barrier_pixels": int(barriers.sum()), "moved_pixels": int(np.count_nonzero(out != labels)),
                  "regions": int(count)}
+
+
+def _nearest_region(regions: np.ndarray, pixel: np.ndarray, reach: int) -> int:
+    """The region (> 0) of the pixel nearest ``pixel`` (x, y) within ``reach`` px, or 0."""
+    x, y = int(pixel[0]), int(pixel[1])
+    r0, c0 = max(0, y - reach), max(0, x - reach)
+    window = regions[r0:y + reach + 1, c0:x + reach + 1]
+    rows, cols = np.nonzero(window)
+    if rows.size == 0:
+        return 0
+    k = np.argmin((rows + r0 - y) ** 2 + (cols + c0 - x) ** 2)
+    return int(window[rows[k], cols[k]])
 
 
 __all__ = ["FOLD_LOW", "FOLD_SIGMAS", "far_chunk", "far_counts", "fold_cells", "spacing_of", "valley_barriers"]

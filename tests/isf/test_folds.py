@@ -64,6 +64,27 @@ def test_cells_end_at_a_barrier_and_each_spot_keeps_its_disc():
     assert record["moved_pixels"] == int(np.count_nonzero(out != labels)) > 0
 
 
+
+def test_a_spot_on_a_barrier_keeps_its_cell_on_its_side():
+    """A short barrier through spot B's own pixel (the far light's edge about a spot, as at
+    8 px spacing) and a fold at x = 26, 2 px short of A and B's border: B keeps its Voronoi pixels right of
+    the fold (its pixel is in the region of the nearest pixel that is not a barrier), and
+    A's pixels past the fold go to B. Before, B's region was the barriers' 0 and every pixel
+    of its cell but its disc went to C."""
+    from ilt.isf.cells import voronoi_cells
+
+    centroids = np.array([[22.0, 16.0], [34.0, 16.0], [46.0, 16.0]])
+    labels = voronoi_cells(centroids, (32, 60))
+    barriers = np.zeros((32, 60), bool)
+    barriers[:, 26] = True
+    barriers[16, 33:36] = True                               # through B's pixel (34, 16)
+    out, _ = fold_cells(labels, centroids, barriers, spacing=12.0)
+    rows, cols = np.mgrid[:32, :60]
+    assert np.all(out[(labels == 1) & ~barriers] == 1)
+    past = (labels == 0) & (cols > 26)
+    assert past.sum() == 2 * 32 and np.all(out[past] == 1)
+    assert np.all(out[labels == 2] == 2)
+
 def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     """Noise-free frames: nothing to judge a valley against, the cells as without the
     option and the manifest says why. Noisy frames: the same lit pixels, the moved ones

@@ -5,6 +5,7 @@
     python benchmarks/bench_isf.py noise [--quick] [--beams M] [--width W --height H]
     python benchmarks/bench_isf.py spill [--quick] [--beams M] [--width W --height H]
     python benchmarks/bench_isf.py lambertian [--quick] [--beams M] [--width W --height H]
+    python benchmarks/bench_isf.py folds [--quick] [--beams M] [--width W --height H]
 
 throughput: writes m synthetic beam frames (a Gaussian laser spot on a smooth
 interreflection-like background), then times, in this process, (a) just reading
@@ -23,6 +24,9 @@ spill: the cost of measuring each spot's direct light in its neighbours' cells (
 :mod:`ilt.isf.spill`): build-isf on the synthetic frames with and without it, back to back
 in every repeat; medians and the ratio (target <= 1.15).
 
+folds: the cost of ``--fold-cells`` (:mod:`ilt.isf.folds`: one more pass over the frames
+for the far light, its valleys and the cells ended at them), the same way.
+
 lambertian: the cost of the reciprocity check (issue 22, :mod:`ilt.transport.reciprocity`),
 build-isf with and without it, the same way (target <= 1.10 at m = 4096).
 
@@ -36,6 +40,7 @@ the true n-bounce frames, or their values at the sample pixels).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import sys
@@ -146,9 +151,19 @@ def noise_cost(m: int, width: int, height: int, workers: int, repeats: int) -> N
     print(f"  ratio {ratio:.3f} (target <= 1.2)")
 
 
+def applied(isf: Path, output: str) -> bool:
+    """Whether a build wrote ``output``: a file of the ISF, or (``manifest:KEY``) a record of
+    its manifest that says it was applied."""
+    if output.startswith("manifest:"):
+        record = json.loads((isf / "manifest.json").read_text()).get(output.split(":", 1)[1])
+        return bool(record and record.get("applied"))
+    return (isf / output).exists()
+
+
 def toggle_cost(option: str, output: str, target: float, what: str, m: int, width: int, height: int,
                 workers: int, repeats: int) -> None:
-    """build-isf with ``option`` on and off, back to back in every repeat: medians and their ratio."""
+    """build-isf with ``option`` on and off, back to back in every repeat: medians and their ratio
+    (``output``: what the option writes, :func:`applied`)."""
     from ilt.isf import build
     from ilt.spots.stage import run_centroids
 
@@ -162,7 +177,7 @@ def toggle_cost(option: str, output: str, target: float, what: str, m: int, widt
                 t = time.perf_counter()
                 build.build_isf(tmp / "hdr", tmp / "spots", tmp / "isf", workers=workers, force=True, **{option: on})
                 times[on].append(time.perf_counter() - t)
-                assert (tmp / "isf" / output).exists() == on
+                assert applied(tmp / "isf", output) == on
     with_, without = (statistics.median(times[k][1:]) for k in (True, False))
     ratio = statistics.median(a / b for a, b in zip(times[True][1:], times[False][1:]))
     print(f"build-isf, m = {m}, {width} x {height}, {workers} workers, medians of {repeats} repeats")
@@ -228,6 +243,7 @@ def main() -> None:
     frames_parser("noise")
     frames_parser("spill")
     frames_parser("lambertian")
+    frames_parser("folds")
     s = sub.add_parser("sampling")
     s.add_argument("--quick", action="store_true", help="densities 16, 32")
     s.add_argument("--densities", default="32,64,128")
@@ -242,11 +258,12 @@ def main() -> None:
         if args.quick:
             args.beams, args.width, args.height = 128, 320, 240
         noise_cost(args.beams, args.width, args.height, args.workers, args.repeats)
-    elif args.what in ("spill", "lambertian"):
+    elif args.what in ("spill", "lambertian", "folds"):
         if args.quick:
             args.beams, args.width, args.height = 128, 320, 240
         option = {"spill": ("spill", "spill.npz", 1.15, "the spill measured"),
-                  "lambertian": ("lambertian", "lambertian.json", 1.10, "the reciprocity check")}[args.what]
+                  "lambertian": ("lambertian", "lambertian.json", 1.10, "the reciprocity check"),
+                  "folds": ("fold_cells", "manifest:folds", 1.5, "cells ended at folds")}[args.what]
         toggle_cost(*option, args.beams, args.width, args.height, args.workers, args.repeats)
     else:
         densities = [16, 32] if args.quick else [int(d) for d in args.densities.split(",")]

@@ -174,8 +174,13 @@ def write_exr(
     return path
 
 
-def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
+def read_exr(path: str | os.PathLike, rows: tuple[int, int] | None = None,
+             shape: tuple[int, int] | None = None) -> tuple[np.ndarray, dict]:
     """Read an OpenEXR image written by `write_exr` (or any float/half EXR).
+
+    ``rows`` (r0, r1): only those rows of the image (0 <= r0 < r1 <= its height), decoding
+    only the blocks of scanlines that hold them. ``shape`` (H, W): the image must be that
+    size (checked before any pixel is read).
 
     Returns
     -------
@@ -203,17 +208,23 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
         for name, fmt in zip(spec.channelnames, formats):
             if fmt.basetype not in (oiio.HALF, oiio.FLOAT):
                 raise ImageError(f"{path}: channel {name!r} stores {fmt}, not float")
-        pixels = inp.read_image("float")
+        if shape is not None and (spec.height, spec.width) != tuple(shape):
+            raise ImageError(f"{path}: frame is {spec.width} x {spec.height} pixels, expected {shape[1]} x {shape[0]}")
+        r0, r1 = (0, spec.height) if rows is None else (int(rows[0]), int(rows[1]))
+        if not 0 <= r0 < r1 <= spec.height:
+            raise ImageError(f"{path}: rows {r0}-{r1} are not within its {spec.height}")
+        if rows is None:
+            pixels = inp.read_image("float")
+        else:
+            pixels = inp.read_scanlines(0, 0, spec.y + r0, spec.y + r1, 0, 0, spec.nchannels, "float")
         if pixels is None:
             raise ImageError(f"{path}: cannot read pixels: {inp.geterror()}")
     finally:
         inp.close()
 
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(
-        spec.height, spec.width, spec.nchannels
-    )
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(r1 - r0, spec.width, spec.nchannels)
     names = list(spec.channelnames)
-    _check_finite(path, pixels, names)
+    _check_finite(path, pixels, names, r0)
     attributes = {p.name: p.value for p in spec.extra_attribs}
     try:
         for name in json.loads(attributes.pop(_JSON_ATTR, "[]")):
@@ -239,13 +250,14 @@ def _float32_pixels(path: Path, image: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(image.reshape(image.shape[0], image.shape[1], -1), np.float32)
 
 
-def _check_finite(path: Path, pixels: np.ndarray, names: list[str]) -> None:
-    """Raise ImageError at the first NaN/inf of an (H, W, C) array, in scanline order."""
+def _check_finite(path: Path, pixels: np.ndarray, names: list[str], row: int = 0) -> None:
+    """Raise ImageError at the first NaN/inf of an (H, W, C) array, in scanline order
+    (``row``: the image row of the array's first)."""
     bad = ~np.isfinite(pixels)
     if bad.any():
         y, x, c = np.argwhere(bad)[0]
         raise ImageError(
-            f"{path}: non-finite float32 value {pixels[y, x, c]} at pixel (x={x}, y={y}), "
+            f"{path}: non-finite float32 value {pixels[y, x, c]} at pixel (x={x}, y={y + row}), "
             f"channel {names[c]!r} ({int(bad.sum())} non-finite values in all)"
         )
 

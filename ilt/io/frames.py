@@ -188,11 +188,17 @@ def read_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None) ->
     return read_frame_with_mapping(path, shape)[0]
 
 
-def read_frame_with_mapping(path: str | os.PathLike,
-                            shape: tuple[int, int] | None = None) -> tuple[np.ndarray, PixelMapping | None]:
+def read_frame_rows(path: str | os.PathLike, shape: tuple[int, int], rows: tuple[int, int]) -> np.ndarray:
+    """(r1 - r0, W) float32: rows ``rows`` (r0, r1) of :func:`read_frame`, decoding only
+    the blocks that hold them (a frame must be ``shape``)."""
+    return read_frame_with_mapping(path, shape, rows)[0]
+
+
+def read_frame_with_mapping(path: str | os.PathLike, shape: tuple[int, int] | None = None,
+                            rows: tuple[int, int] | None = None) -> tuple[np.ndarray, PixelMapping | None]:
     """:func:`read_frame` and the frame's pixel mapping from its header (None when it has none)."""
     try:
-        pixels, attrs = read_exr(path)
+        pixels, attrs = read_exr(path, rows, shape if rows is not None else None)
     except ImageError as exc:
         raise FrameError(str(exc)) from None
     names = attrs["channels"]
@@ -202,7 +208,7 @@ def read_frame_with_mapping(path: str | os.PathLike,
         image = pixels[:, :, 0]
     else:
         raise FrameError(f"{path}: channels {names}: need a 'G' channel or a single channel")
-    if shape is not None and image.shape != tuple(shape):
+    if rows is None and shape is not None and image.shape != tuple(shape):
         raise FrameError(f"{path}: frame is {image.shape[1]} x {image.shape[0]} pixels, expected {shape[1]} x {shape[0]}")
     return image, PixelMapping.from_attributes(attrs, path)
 

@@ -13,6 +13,7 @@ mapping to full-frame pixels is recorded in ``cells.exr`` and the manifest.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import threading
@@ -549,7 +550,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius, threads=workers or -1)
         folds = None
         if fold_cells:
-            labels, folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk)
+            sum_beams = _sum_beams(spots_dir, beams) if frame_sum is not None else None
+            labels, folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk,
+                                        frame_sum, sum_beams)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
@@ -693,10 +696,24 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
 
 
-def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk) -> tuple[np.ndarray, dict]:
+def _sum_beams(spots_dir: Path, beams: list[int]) -> list[int] | None:
+    """The beams whose frames ``sum.exr`` holds as build-isf reads them (every beam of the
+    spots table), or None when centroids subtracted a dark frame from them."""
+    try:
+        manifest = json.loads((spots_dir / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return None if manifest.get("parameters", {}).get("dark") else list(beams)
+
+
+def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk, frame_sum=None,
+                sum_beams=None) -> tuple[np.ndarray, dict]:
     """``--fold-cells``: the cells ended at the concave folds the frames show
-    (:mod:`ilt.isf.folds`; one more pass over the frames), and the manifest's record."""
-    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, far_chunk, far_counts, fold_cells, spacing_of, valley_barriers
+    (:mod:`ilt.isf.folds`), and the manifest's record. The far light is the scan's sum
+    (``sum.exr``, whose frames are ``sum_beams``) less each frame's disc about its spot,
+    read over the disc's rows only; without that sum, one more pass over the frames."""
+    from ilt.isf.folds import (FOLD_LOW, FOLD_SIGMAS, far_chunk, far_counts, far_from_sum, fold_cells, near_chunk,
+                               spacing_of, valley_barriers)
 
     if noise is None:
         log.warning("--fold-cells: the frames show no noise to judge folds against (noise-free frames): cells "
@@ -704,19 +721,33 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
         return labels, {"applied": False, "reason": "no noise model (noise-free frames)"}
     spacing = spacing_of(on_grid)
     row = {b: i for i, b in enumerate(plan)}
-    tasks = []
-    for c in chunks(plan, chunk):
-        rows = [row[b] for b in c]
-        tasks.append(([hdr.files[b] for b in c], hdr.frame_shape, on_grid[rows], spacing, noise, discs[rows]))
     light = np.zeros(hdr.frame_shape)
-    with beam_executor(executor, workers) as ex:
-        for part in run_chunks(far_chunk, tasks, ex):
-            light += part
+    if frame_sum is not None and sum_beams is not None:
+        # the beams the sum holds that build-isf dropped: their whole frames (centre NaN)
+        beams = [b for b in sum_beams if b in row] + [b for b in sum_beams if b not in row]
+        centres = np.array([on_grid[row[b]] if b in row else (np.nan, np.nan) for b in beams]).reshape(-1, 2)
+        tasks = [([hdr.files[b] for b in beams[k:k + chunk]], hdr.frame_shape, centres[k:k + chunk], spacing)
+                 for k in range(0, len(beams), chunk)]
+        with beam_executor(executor, workers) as ex:
+            for part in run_chunks(near_chunk, tasks, ex):
+                light += part
+        light = far_from_sum(frame_sum, light, noise, len(sum_beams))
+        source = "sum.exr less each frame's disc"
+    else:
+        tasks = []
+        for c in chunks(plan, chunk):
+            rows = [row[b] for b in c]
+            tasks.append(([hdr.files[b] for b in c], hdr.frame_shape, on_grid[rows], spacing, noise, discs[rows]))
+        with beam_executor(executor, workers) as ex:
+            for part in run_chunks(far_chunk, tasks, ex):
+                light += part
+        source = "a pass over the frames"
     barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), noise, labels >= 0, spacing)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
     log.info("--fold-cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
              record["barrier_pixels"])
-    return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW, **record}
+    return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW,
+                    "far_light": source, **record}
 
 
 def _outlier_record(clamped: np.ndarray, plan: list[int]) -> dict:

@@ -48,27 +48,79 @@ def far_chunk(files, shape, centres, spacing, noise=None, discs=None):
 
     light = np.zeros(shape)
     frame = np.empty(shape)
-    rows, cols = np.ogrid[:shape[0], :shape[1]]
-    for k, (path, (x, y)) in enumerate(zip(files, centres)):
+    for k, (path, centre) in enumerate(zip(files, centres)):
         load_frame(path, shape, out=frame)
         if noise is not None:
-            clamp_isolated(frame, noise, centres[k], float(discs[k]))
-        light += np.where((cols - x) ** 2 + (rows - y) ** 2 > spacing**2, frame, 0.0)
+            clamp_isolated(frame, noise, centre, float(discs[k]))
+        light += frame
+        near = _disc(centre, shape, spacing)          # and the disc about the spot taken back out
+        if near is not None:
+            window, inside = near
+            light[window][inside] -= frame[window][inside]
     return light
+
+
+def near_chunk(files, shape, centres, radius):
+    """Worker: (H, W) float64, the chunk's frames summed within ``radius`` of their own
+    spot (``centres``), each read only over the rows of that disc; a centre of NaN: the
+    whole frame (a beam build-isf dropped, whose frame the scan's sum holds). The scan's
+    sum less these is the far light (:func:`far_from_sum`) without a second full read."""
+    from ilt.io.frames import load_frame, read_frame_rows
+
+    light = np.zeros(shape)
+    for path, centre in zip(files, centres):
+        if not np.all(np.isfinite(centre)):
+            light += load_frame(path, shape)
+            continue
+        near = _disc(centre, shape, radius)
+        if near is not None:
+            (rows, cols), inside = near
+            light[rows, cols][inside] += read_frame_rows(path, shape, (rows.start, rows.stop))[:, cols][inside]
+    return light
+
+
+def sum_noise(noise, frames: int):
+    """The noise model of a sum of ``frames`` frames of the level of its mean (each knot's
+    level and variance times ``frames``; photon noise's slope is a sum's too)."""
+    from ilt.isf.noise import FrameNoise
+
+    return FrameNoise(tuple(frames * np.asarray(noise.levels)), tuple(frames * np.asarray(noise.variances)),
+                      noise.frames, noise.pixels, noise.bins, noise.slope)
+
+
+def far_from_sum(frame_sum: np.ndarray, near: np.ndarray, noise, frames: int) -> np.ndarray:
+    """The far light from the scan's sum (``sum.exr``) less ``near`` (:func:`near_chunk`),
+    its isolated outliers replaced on the sum's noise (a firefly of any frame stands out of
+    the sum as of its frame; one too faint to, smoothed by the valley test's Gaussian of at
+    least 2 px, stays under its 3 sigma)."""
+    from ilt.isf.outliers import clamp_isolated
+
+    light = frame_sum - near
+    clamp_isolated(light, sum_noise(noise, frames))
+    return light
+
+
+def _disc(centre, shape, radius: float):
+    """The window about ``centre`` (x, y) and the mask of its pixels within ``radius``
+    (inclusive) of it, or None when the disc misses the frame."""
+    x, y = centre
+    reach = int(np.ceil(radius))
+    r0, r1 = max(0, int(np.floor(y)) - reach), min(shape[0], int(np.ceil(y)) + reach + 1)
+    c0, c1 = max(0, int(np.floor(x)) - reach), min(shape[1], int(np.ceil(x)) + reach + 1)
+    if r0 >= r1 or c0 >= c1:
+        return None
+    rows, cols = np.ogrid[r0:r1, c0:c1]
+    return (slice(r0, r1), slice(c0, c1)), (cols - x) ** 2 + (rows - y) ** 2 <= radius**2
 
 
 def far_counts(centroids: np.ndarray, shape, spacing: float) -> np.ndarray:
     """(H, W) float64: how many frames count in the far light at each pixel (those whose
     spot is farther than ``spacing``): every frame less the discs about the spots."""
     count = np.full(shape, float(len(centroids)))
-    reach = int(np.ceil(spacing))
-    for x, y in centroids:
-        r0, r1 = max(0, int(np.floor(y)) - reach), min(shape[0], int(np.ceil(y)) + reach + 1)
-        c0, c1 = max(0, int(np.floor(x)) - reach), min(shape[1], int(np.ceil(x)) + reach + 1)
-        if r0 >= r1 or c0 >= c1:
-            continue
-        rows, cols = np.ogrid[r0:r1, c0:c1]
-        count[r0:r1, c0:c1] -= (cols - x) ** 2 + (rows - y) ** 2 <= spacing**2
+    for centre in centroids:
+        near = _disc(centre, shape, spacing)
+        if near is not None:
+            count[near[0]] -= near[1]
     return count
 
 
@@ -132,19 +184,22 @@ def fold_cells(labels: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, 
         # a spot on a barrier pixel: the region of the nearest pixel about it that is none
         # (region 0 gave its cell to its neighbours, bar its disc)
         spot_region[i] = _nearest_region(regions, spot[i], int(np.ceil(disc)))
-    inside = np.flatnonzero(lit)
-    near, owner = cKDTree(centroids).query(np.column_stack([inside % width, inside // width]),
+    flat_regions, flat_labels = regions.ravel(), labels.ravel()
+    out = flat_labels.copy()
+    # a pixel whose cell's spot (its nearest) is in its region keeps it: that spot is its
+    # nearest there too. The others, but for each spot's own disc, go to the nearest spot
+    # of their region (if it has one)
+    moving = np.flatnonzero((flat_regions > 0) & lit.ravel())
+    moving = moving[spot_region[flat_labels[moving]] != flat_regions[moving]]
+    if moving.size:
+        near, _ = cKDTree(centroids).query(np.column_stack([moving % width, moving // width]),
                                            distance_upper_bound=disc * (1 + 1e-9))
-    own = np.zeros(lit.size, bool)
-    own[inside[np.isfinite(near)]] = True
-    out = labels.copy().ravel()
-    flat_regions = regions.ravel()
-    for r in range(1, count + 1):
-        mine = np.flatnonzero(spot_region == r)
-        if mine.size == 0:
-            continue
-        pixels = np.flatnonzero((flat_regions == r) & ~own)
-        if pixels.size:
+        moving = moving[~np.isfinite(near)]
+    moving = moving[np.argsort(flat_regions[moving], kind="stable")]
+    starts = np.flatnonzero(np.r_[True, np.diff(flat_regions[moving]) != 0])
+    for pixels in np.split(moving, starts[1:]) if moving.size else []:
+        mine = np.flatnonzero(spot_region == flat_regions[pixels[0]])
+        if mine.size:
             _, nearest = cKDTree(centroids[mine]).query(np.column_stack([pixels % width, pixels // width]))
             out[pixels] = mine[nearest]
     out = out.reshape(labels.shape)
@@ -164,4 +219,5 @@ def _nearest_region(regions: np.ndarray, pixel: np.ndarray, reach: int) -> int:
     return int(window[rows[k], cols[k]])
 
 
-__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "far_chunk", "far_counts", "fold_cells", "spacing_of", "valley_barriers"]
+__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "far_chunk", "far_counts", "far_from_sum", "fold_cells", "near_chunk",
+           "spacing_of", "sum_noise", "valley_barriers"]

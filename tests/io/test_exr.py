@@ -192,3 +192,26 @@ def test_the_same_image_gives_the_same_bytes(tmp_path):
     write_exr(tmp_path / "b.exr", image, attributes={"beam": 3})
     assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
     assert "DateTime" not in read_exr(tmp_path / "a.exr")[1]
+
+
+def test_rows_read_only_those_rows_as_the_whole_read_has_them(tmp_path):
+    """read_exr(rows=...) gives the same pixels as the whole image's rows (a block of ZIP
+    scanlines is 16 rows: windows across and inside blocks), checks the size first, names
+    a NaN's pixel by its image row, and refuses rows outside the image."""
+    image = np.random.default_rng(0).random((50, 37, 2)).astype(np.float32)
+    path = write_exr(tmp_path / "a.exr", image, channels=["G", "R"])
+    for r0, r1 in ((0, 50), (3, 9), (15, 17), (31, 50)):
+        part, attributes = read_exr(path, rows=(r0, r1))
+        np.testing.assert_array_equal(part, image[r0:r1])
+        assert attributes["channels"] == ["G", "R"]
+    with pytest.raises(ImageError, match=r"frame is 37 x 50 pixels, expected 40 x 50"):
+        read_exr(path, rows=(0, 5), shape=(50, 40))
+    for rows in ((5, 5), (-1, 3), (40, 51)):
+        with pytest.raises(ImageError, match="not within its 50"):
+            read_exr(path, rows=rows)
+    image = image[..., :1].copy()
+    image[33, 4, 0] = np.nan
+    _write_with_oiio(tmp_path / "nan.exr", image, ["Y"])
+    with pytest.raises(ImageError, match=r"x=4, y=33.*'Y'"):
+        read_exr(tmp_path / "nan.exr", rows=(30, 40))
+    np.testing.assert_array_equal(read_exr(tmp_path / "nan.exr", rows=(34, 40))[0], image[34:40])

@@ -124,3 +124,33 @@ def test_far_counts_are_the_frames_whose_spot_is_beyond_a_spacing():
     rows, cols = np.ogrid[:150, :200]
     brute = sum(((cols - x) ** 2 + (rows - y) ** 2 > 17.3**2).astype(float) for x, y in centroids)
     np.testing.assert_array_equal(far_counts(centroids, (150, 200), 17.3), brute)
+
+
+def test_the_far_light_from_the_scans_sum_is_the_far_pass(tmp_path):
+    """The scan's sum less each kept frame's disc (read over its rows only) and the dropped
+    beams' whole frames equals summing the kept frames where far from their spots; a
+    firefly in one frame is replaced in the sum as in its frame."""
+    from ilt.io.exr import write_exr
+    from ilt.isf.folds import far_chunk, far_from_sum, near_chunk
+
+    rng = np.random.default_rng(5)
+    shape, spacing = (40, 64), 9.5
+    rows, cols = np.mgrid[:40, :64]
+    centres = np.column_stack([rng.uniform(4, 60, 7), rng.uniform(4, 36, 7)])
+    files, frames = [], []
+    for k, (x, y) in enumerate(centres):
+        frame = 50.0 * np.exp(-((cols - x) ** 2 + (rows - y) ** 2) / 60.0) + 2.0 + 0.02 * cols
+        frame = rng.poisson(frame * GAIN) / GAIN
+        frames.append(frame)
+        files.append(write_exr(tmp_path / f"beam-{k:05d}.exr", frame))
+    total = np.sum([f.astype(np.float32).astype(np.float64) for f in frames], axis=0)
+    kept = [0, 1, 2, 4, 5, 6]                                          # beam 3 dropped
+    brute = far_chunk([files[k] for k in kept], shape, centres[kept], spacing)
+    centres_in_sum = centres.copy()
+    centres_in_sum[3] = np.nan
+    near = near_chunk(files, shape, centres_in_sum, spacing)
+    np.testing.assert_allclose(far_from_sum(total, near, NOISE, 7), brute, rtol=1e-9, atol=1e-9)
+    firefly = total.copy()
+    firefly[20, 30] += 400.0
+    around = np.delete(brute[19:22, 29:32].ravel(), 4)
+    assert far_from_sum(firefly, near, NOISE, 7)[20, 30] == pytest.approx(np.median(around))

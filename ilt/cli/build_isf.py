@@ -41,9 +41,10 @@ from ilt.workspace.options import BUILD_ISF
                    "fitted in the same pass (0: flat cells; 2 stores 5 m^2 float32 against 2 m^2 for 1).")
 @stage_option(BUILD_ISF["no_fine"], help="Do not build fine/: 'ilt decompose' then splits photos at the "
                                         "m samples only.")
-@stage_option(BUILD_ISF["fold_cells"], help="End the cells at the scene's concave folds, where the light of the "
-                                             "beams farther than a spot spacing has a valley (noisy frames; one "
-                                             "more pass over the frames; docs/fullres.md, 'A spot on a fold').")
+@stage_option(BUILD_ISF["fold_cells"], show_default=True,
+              help="End the cells at the scene's concave folds, where the light of the beams farther than a "
+                   "spot spacing has a valley above the frames' noise (frames without noise: not applied). It "
+                   "reads each frame again over its spot's rows only (docs/fullres.md, 'A spot on a fold').")
 @click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",
               help="An earlier build of the same scene and camera (its ISF directory, or its cells.exr): every "
                    "pixel its cells covered stays covered, so that a denser rescan covers at least what it "

@@ -20,7 +20,9 @@ def stage_option(option: StageOption, *short: str, **kwargs):
     """The click option of a stage option (:mod:`ilt.workspace.options`): its long flag,
     parameter name, default and type from there; ``short`` flags, help and the rest here."""
     kind = {"is_flag": True} if isinstance(option.default, bool) else {"type": option.type}
-    return click.option(*short, f"--{option.flag}", option.name, default=option.default, **kind, **kwargs)
+    # a flag on by default is turned off by --no-FLAG
+    flag = f"--{option.flag}/--no-{option.flag}" if option.default is True else f"--{option.flag}"
+    return click.option(*short, flag, option.name, default=option.default, **kind, **kwargs)
 
 
 force_option = click.option("--force", is_flag=True, help="Replace outputs that already exist.")

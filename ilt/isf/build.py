@@ -13,7 +13,6 @@ mapping to full-frame pixels is recorded in ``cells.exr`` and the manifest.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import threading
@@ -444,7 +443,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
               max_cell_radius: float | None = None, executor=None, workers: int | None = None,
               chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
               fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True, lambertian: bool = True,
-              keep_covered: str | os.PathLike | None = None, fold_cells: bool = False) -> dict:
+              keep_covered: str | os.PathLike | None = None, fold_cells: bool = True) -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
@@ -468,8 +467,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     ``keep_covered``: an earlier build of the same scene (its ISF directory, a directory
     holding its ``cells.exr``, or that file): every pixel its cells covered stays covered
     (:func:`earlier_coverage`), so that a denser scan covers at least what it did.
-    ``fold_cells`` (cell sampling, noisy frames): the cells end at the concave folds the
-    frames show (:mod:`ilt.isf.folds`), at the cost of one more pass over the frames.
+    ``fold_cells`` (cell sampling, frames with a noise model): the cells end at the concave
+    folds the frames show (:mod:`ilt.isf.folds`), at the cost of reading each frame's rows
+    about its spot again.
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
@@ -681,8 +681,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         save_png(tmp / "T.png", T, title=f"T ({m} x {m}, {sampling} sampling)", xlabel="beam j", ylabel="pixel i")
         parameters = {"sampling": sampling, "min_separation": min_separation, "lit_fraction": lit_fraction,
                       "max_cell_radius": max_cell_radius, "fine_degree": fine_degree, "lit_sigmas": LIT_SIGMAS}
-        if fold_cells:
-            parameters["fold_cells"] = True
+        if sampling == "cell":
+            parameters["fold_cells"] = bool(fold_cells)
         inputs = {str(spots_dir / SPOTS_FILE): ""}
         if (spots_dir / MANIFEST).exists():   # the spots' manifest by its hash: what `ilt status` knows a stage by
             spots_manifest = read_manifest(spots_dir)
@@ -699,16 +699,14 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
 def _sum_beams(spots_dir: Path, beams: list[int]) -> list[int] | None:
     """The beams whose frames ``sum.exr`` holds as build-isf reads them (every beam of the
     spots table), or None when centroids subtracted a dark frame from them."""
-    try:
-        manifest = json.loads((spots_dir / "manifest.json").read_text())
-    except (OSError, ValueError):
+    if not (spots_dir / MANIFEST).exists():
         return None
-    return None if manifest.get("parameters", {}).get("dark") else list(beams)
+    return None if read_manifest(spots_dir).get("parameters", {}).get("dark") else list(beams)
 
 
 def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk, frame_sum=None,
                 sum_beams=None) -> tuple[np.ndarray, dict]:
-    """``--fold-cells``: the cells ended at the concave folds the frames show
+    """``fold_cells``: the cells ended at the concave folds the frames show
     (:mod:`ilt.isf.folds`), and the manifest's record. The far light is the scan's sum
     (``sum.exr``, whose frames are ``sum_beams``) less each frame's disc about its spot,
     read over the disc's rows only; without that sum, one more pass over the frames."""
@@ -716,8 +714,8 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
                                spacing_of, valley_barriers)
 
     if noise is None:
-        log.warning("--fold-cells: the frames show no noise to judge folds against (noise-free frames): cells "
-                    "as without it")
+        log.info("fold cells: the frames show no noise to judge folds against (noise-free frames): cells as "
+                 "without them")
         return labels, {"applied": False, "reason": "no noise model (noise-free frames)"}
     spacing = spacing_of(on_grid)
     row = {b: i for i, b in enumerate(plan)}
@@ -744,7 +742,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
         source = "a pass over the frames"
     barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), noise, labels >= 0, spacing)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
-    log.info("--fold-cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
+    log.info("fold cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
              record["barrier_pixels"])
     return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW,
                     "far_light": source, **record}

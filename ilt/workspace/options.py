@@ -106,7 +106,7 @@ BUILD_ISF = _table(
     StageOption("max_cell_radius", "max-cell-radius", None, click.FloatRange(min=0, min_open=True)),
     StageOption("fine_degree", "fine-degree", 1, click.IntRange(0, 2)),
     StageOption("no_fine", "no-fine", False),
-    StageOption("fold_cells", "fold-cells", False),
+    StageOption("fold_cells", "fold-cells", True),
     WORKERS,
 )
 

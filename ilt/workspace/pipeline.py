@@ -84,9 +84,6 @@ log = logging.getLogger(__name__)
 #: options of a stage command that change nothing in its output (not fingerprinted);
 #: the [cluster] scheduler is one too, kept out of the stage sections altogether
 RUNTIME_KEYS = ("workers", "scheduler")
-#: options added after workspaces were made, fingerprinted only when set: at their
-#: default a stage built before they existed is still current, not rebuilt
-LATER_OPTIONS = {"fold_cells": False}
 
 
 @dataclass
@@ -195,8 +192,7 @@ def _cluster(section, path: Path) -> ClusterConfig:
 
 
 def fingerprinted(options: dict) -> dict:
-    return {k: v for k, v in options.items()
-            if k not in RUNTIME_KEYS and not (k in LATER_OPTIONS and v == LATER_OPTIONS[k])}
+    return {k: v for k, v in options.items() if k not in RUNTIME_KEYS}
 
 
 # ---------------------------------------------------------------------- the stages

@@ -10,7 +10,7 @@ COMMANDS = {
     "bench": ["--quick", "--sizes", "--scenes", "--noise", "--solvers", "--batch", "--bounces", "--repeats",
               "--draws", "-o/--output", "--json"],
     "build-isf": ["HDR_DIR", "SPOTS_DIR", "-o/--output", "--sampling", "--min-separation", "--lit-fraction",
-                  "--max-cell-radius", "--fine-degree", "--no-fine", "--fold-cells", "--keep-covered", "-j/--workers", "--scheduler", "--scheduler-file",
+                  "--max-cell-radius", "--fine-degree", "--no-fine", "--fold-cells/--no-fold-cells", "--keep-covered", "-j/--workers", "--scheduler", "--scheduler-file",
                   "--insecure", "-w/--workspace", "--force", "--json"],
     "calibrate": ["INPUTS", "-o/--output", "--times", "--order", "--max-order", "--pin-span/--free-span",
                   "--trust-ratios/--estimate-ratios",

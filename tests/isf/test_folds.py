@@ -97,23 +97,24 @@ def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     sim = tmp_path / "sim"
     run("simulate", "m", "--frames", "--beams", 32, "--px-per-beam", 12, "-o", sim)
     run("centroids", sim / "hdr", "-o", tmp_path / "spots", "--workers", 1)
-    result = run("build-isf", sim / "hdr", tmp_path / "spots", "-o", tmp_path / "clean", "--fold-cells",
-                 "--workers", 1)
-    assert "--fold-cells: the frames show no noise to judge folds against" in result.output
+    result = run("build-isf", sim / "hdr", tmp_path / "spots", "-o", tmp_path / "clean", "--workers", 1)
+    assert "fold cells: the frames show no noise to judge folds against" in result.output
+    assert "WARNING" not in result.output
     folds = json.loads((tmp_path / "clean" / "manifest.json").read_text())["folds"]
     assert folds["applied"] is False and "noise" in folds["reason"]
     noisy = tmp_path / "noisy"
     noisy_frames(sim / "hdr", noisy, np.random.default_rng(3))
     run("centroids", noisy, "-o", tmp_path / "nspots", "--workers", 1)
-    build_isf(noisy, tmp_path / "nspots", tmp_path / "plain", workers=1)
-    build_isf(noisy, tmp_path / "nspots", tmp_path / "fold", workers=1, fold_cells=True)
+    build_isf(noisy, tmp_path / "nspots", tmp_path / "plain", workers=1, fold_cells=False)
+    build_isf(noisy, tmp_path / "nspots", tmp_path / "fold", workers=1)
     a = read_exr(tmp_path / "plain" / "cells.exr")[0][..., 0]
     b = read_exr(tmp_path / "fold" / "cells.exr")[0][..., 0]
     manifest = json.loads((tmp_path / "fold" / "manifest.json").read_text())
     assert manifest["folds"]["applied"] is True and manifest["parameters"]["fold_cells"] is True
     assert np.array_equal(a >= 0, b >= 0)
     assert manifest["folds"]["moved_pixels"] == int(np.count_nonzero(a != b))
-    assert "fold_cells" not in json.loads((tmp_path / "plain" / "manifest.json").read_text())["parameters"]
+    plain = json.loads((tmp_path / "plain" / "manifest.json").read_text())
+    assert plain["parameters"]["fold_cells"] is False and "folds" not in plain
 
 
 def test_far_counts_are_the_frames_whose_spot_is_beyond_a_spacing():

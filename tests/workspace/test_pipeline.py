@@ -242,11 +242,11 @@ def test_stage_values_are_checked_as_the_command_line_checks_them(tmp_path, sect
     assert margin == 0 and isinstance(margin, int)
 
 
-def test_an_option_added_later_changes_no_stage_made_before_it():
-    """build-isf's --fold-cells at its default leaves the stage's fingerprint as it was
-    before the option existed (a workspace made then is not rebuilt); set, it counts."""
+def test_cells_ended_at_folds_are_part_of_build_isfs_fingerprint():
+    """build-isf's fold_cells is fingerprinted, on (its default) or off: a workspace built
+    before cells ended at folds by default is built again; the workers are not."""
     from ilt.workspace.pipeline import fingerprinted
 
     before = {"sampling": "cell", "fine_degree": 1}
-    assert fingerprinted({**before, "fold_cells": False, "workers": 2}) == before
     assert fingerprinted({**before, "fold_cells": True, "workers": 2}) == {**before, "fold_cells": True}
+    assert fingerprinted({**before, "fold_cells": False, "workers": 2}) == {**before, "fold_cells": False}

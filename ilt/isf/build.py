@@ -48,9 +48,9 @@ from ilt.isf.fine import (
     frames_inputs,
     write_fine,
 )
-from ilt.isf.folds import spacing_of
+from ilt.isf.folds import SUM_OUTLIER_SHARE, spacing_of
 from ilt.isf.lambertian import check_lambertian
-from ilt.isf.outliers import OUTLIER_SIGMAS, clamp_isolated, screening_model, spot_radius
+from ilt.isf.outliers import OUTLIER_SIGMAS, clamp_isolated, fresh_outliers, screening_model, spot_radius
 from ilt.isf.noise import (
     SAMPLE_FRAMES,
     T_VAR_FILE,
@@ -513,11 +513,13 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         # isolated outliers (fireflies) inflate the fit, and an inflated model lets them
         # through: fitted again on the frames without those that its faint knots find
         # (ilt.isf.outliers.screening_model), then without those the new fit finds
+        replaced: list[list[int]] = [[] for _ in sample]     # each sample frame's outliers, flat indices
         for model in (screening_model, lambda fitted: fitted):
-            if noise is None or not sum(clamp_isolated(f, model(noise), on_grid[i], discs[i])
-                                        for f, i in zip(frames, sample)):
+            if noise is None or not sum(clamp_isolated(f, model(noise), on_grid[i], discs[i], replaced=r)
+                                        for f, i, r in zip(frames, sample, replaced)):
                 break
             noise = fit_frame_noise(frames, on_grid[sample])
+        fresh = fresh_outliers(replaced, frames[0].size)
         del frames
         frame_sum = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping)
         peak = _read_sum(spots_dir, hdr.frame_shape, hdr.mapping, PEAK_FILE) if frame_sum is not None else None
@@ -552,7 +554,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         if fold_cells:
             sum_beams = _sum_beams(spots_dir, beams) if frame_sum is not None else None
             labels, folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk,
-                                        frame_sum, sum_beams)
+                                        frame_sum, sum_beams, fresh)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
@@ -705,11 +707,14 @@ def _sum_beams(spots_dir: Path, beams: list[int]) -> list[int] | None:
 
 
 def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk, frame_sum=None,
-                sum_beams=None) -> tuple[np.ndarray, dict]:
+                sum_beams=None, fresh: float = 0.0) -> tuple[np.ndarray, dict]:
     """``fold_cells``: the cells ended at the concave folds the frames show
     (:mod:`ilt.isf.folds`), and the manifest's record. The far light is the scan's sum
     (``sum.exr``, whose frames are ``sum_beams``) less each frame's disc about its spot,
-    read over the disc's rows only; without that sum, one more pass over the frames."""
+    read over the disc's rows only; without that sum, or when the frames' outliers that
+    are not at the same pixel in every frame (``fresh``: their share of a frame's pixels,
+    fireflies) would stand side by side in it, where the sum cannot tell them, one more pass
+    over the frames, each frame's replaced first."""
     from ilt.isf.folds import (FOLD_LOW, FOLD_SIGMAS, far_chunk, far_counts, far_from_sum, fold_cells, near_chunk,
                                spacing_of, valley_barriers)
 
@@ -720,7 +725,8 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     spacing = spacing_of(on_grid)
     row = {b: i for i, b in enumerate(plan)}
     light = np.zeros(hdr.frame_shape)
-    if frame_sum is not None and sum_beams is not None:
+    crowded = sum_beams is not None and fresh * len(sum_beams) > SUM_OUTLIER_SHARE
+    if frame_sum is not None and sum_beams is not None and not crowded:
         # the beams the sum holds that build-isf dropped: their whole frames (centre NaN)
         beams = [b for b in sum_beams if b in row] + [b for b in sum_beams if b not in row]
         centres = np.array([on_grid[row[b]] if b in row else (np.nan, np.nan) for b in beams]).reshape(-1, 2)
@@ -739,7 +745,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
         with beam_executor(executor, workers) as ex:
             for part in run_chunks(far_chunk, tasks, ex):
                 light += part
-        source = "a pass over the frames"
+        source = "a pass over the frames" + (f" (outliers in {fresh:.2g} of each frame's pixels)" if crowded else "")
     barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), noise, labels >= 0, spacing)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
     log.info("fold cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],

@@ -25,6 +25,11 @@ import numpy as np
 FOLD_SIGMAS = 4.5
 #: ... and this many everywhere
 FOLD_LOW = 3.0
+#: the far light is the scan's sum less each frame's disc unless the frames' fireflies
+#: (:func:`ilt.isf.outliers.fresh_outliers`, times the frames summed) would be this share of
+#: its pixels: past it they stand side by side there, where the isolated test cannot tell
+#: them, and each frame is read again whole with its own replaced
+SUM_OUTLIER_SHARE = 1e-3
 #: the Gaussian's sigma as a share of the spot spacing, and its bounds (px)
 SMOOTH_SHARE, SMOOTH_MIN, SMOOTH_MAX = 0.25, 2.0, 8.0
 
@@ -219,5 +224,5 @@ def _nearest_region(regions: np.ndarray, pixel: np.ndarray, reach: int) -> int:
     return int(window[rows[k], cols[k]])
 
 
-__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "far_chunk", "far_counts", "far_from_sum", "fold_cells", "near_chunk",
+__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "SUM_OUTLIER_SHARE", "far_chunk", "far_counts", "far_from_sum", "fold_cells", "near_chunk",
            "spacing_of", "sum_noise", "valley_barriers"]

@@ -116,12 +116,12 @@ _OFFSETS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
 
 
 def clamp_isolated(frame: np.ndarray, noise, spot: np.ndarray | None = None, radius: float = 0.0,
-                   sigmas: float = OUTLIER_SIGMAS) -> int:
+                   sigmas: float = OUTLIER_SIGMAS, replaced: list | None = None) -> int:
     """Replace, in place, each pixel of ``frame`` (H, W) that stands more than ``sigmas``
     noise sigmas (of the difference) above the brightest of its 8 neighbours by the median
     of those 8; the pixels within ``radius`` of ``spot`` (x, y) are left alone. ``noise``:
     the frames' :class:`ilt.isf.noise.FrameNoise`, or None (then nothing is done). Returns
-    how many pixels were replaced.
+    how many pixels were replaced (and appends their flat indices to ``replaced``, if given).
 
     At the frame's edge a pixel is judged on the neighbours it has. Cost: screens on the two
     horizontal neighbours in work arrays kept per process (a 3 x 3 maximum filter took
@@ -164,7 +164,23 @@ def clamp_isolated(frame: np.ndarray, noise, spot: np.ndarray | None = None, rad
     if not out.any():
         return 0
     frame[rows[out], cols[out]] = np.nanmedian(neighbours[:, out], axis=0)
+    if replaced is not None:
+        replaced.extend((rows[out] * width + cols[out]).tolist())
     return int(out.sum())
 
 
-__all__ = ["OUTLIER_SIGMAS", "SPOT_RADII", "clamp_isolated", "screening_model", "spot_radius"]
+def fresh_outliers(replaced: list[list[int]], pixels: int) -> float:
+    """The share of a frame's ``pixels`` that are outliers at pixels of their own (fireflies),
+    from those :func:`clamp_isolated` replaced in each of a sample of frames (``replaced``:
+    flat indices per frame): the distinct pixels less one frame's mean, over the frames but
+    one (an outlier at the same pixel of every frame, a hot pixel, counts once)."""
+    counts = [len(set(r)) for r in replaced]
+    if not counts or not any(counts):
+        return 0.0
+    if len(counts) == 1:
+        return counts[0] / pixels
+    distinct = len(set().union(*map(set, replaced)))
+    return max(0.0, (distinct - float(np.mean(counts))) / (len(counts) - 1)) / pixels
+
+
+__all__ = ["OUTLIER_SIGMAS", "SPOT_RADII", "clamp_isolated", "fresh_outliers", "screening_model", "spot_radius"]

@@ -111,6 +111,7 @@ def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     b = read_exr(tmp_path / "fold" / "cells.exr")[0][..., 0]
     manifest = json.loads((tmp_path / "fold" / "manifest.json").read_text())
     assert manifest["folds"]["applied"] is True and manifest["parameters"]["fold_cells"] is True
+    assert manifest["folds"]["far_light"] == "sum.exr less each frame's disc"
     assert np.array_equal(a >= 0, b >= 0)
     assert manifest["folds"]["moved_pixels"] == int(np.count_nonzero(a != b))
     plain = json.loads((tmp_path / "plain" / "manifest.json").read_text())

@@ -1,6 +1,7 @@
 """Isolated outlier pixels (fireflies, hot pixels) replaced before the cell sums (ilt.isf.outliers)."""
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -119,10 +120,12 @@ def test_build_isf_replaces_fireflies_before_the_cell_sums(tmp_path, monkeypatch
         injected += hits.size
         write_exr(fire / f.name, frame.astype(np.float32), ["Y"], kept)
     run("centroids", noisy, "-o", tmp_path / "spots", "--workers", 1)
-    build_isf(noisy, tmp_path / "spots", tmp_path / "a", workers=1)
-    build_isf(fire, tmp_path / "spots", tmp_path / "b", workers=1)
+    # the same cells for all three (the folds' barriers, read from each scan's light, would
+    # differ by its noise): what differs is the T pass
+    build_isf(noisy, tmp_path / "spots", tmp_path / "a", workers=1, fold_cells=False)
+    build_isf(fire, tmp_path / "spots", tmp_path / "b", workers=1, fold_cells=False)
     monkeypatch.setattr(build, "clamp_isolated", lambda *args, **kwargs: 0)
-    build_isf(fire, tmp_path / "spots", tmp_path / "c", workers=1, lambertian=False)
+    build_isf(fire, tmp_path / "spots", tmp_path / "c", workers=1, lambertian=False, fold_cells=False)
     a, b, c = (np.load(tmp_path / d / "T.npy") * np.load(tmp_path / d / "scales.npy") for d in ("a", "b", "c"))
     sigma = np.sqrt(np.load(tmp_path / "a" / "T_var.npy")) * np.load(tmp_path / "a" / "scales.npy")[None, :]
     assert np.quantile(np.abs(b - a) / sigma, 0.99) < 0.2
@@ -130,3 +133,22 @@ def test_build_isf_replaces_fireflies_before_the_cell_sums(tmp_path, monkeypatch
     outliers = json.loads((tmp_path / "b" / "manifest.json").read_text())["outliers"]
     assert 0.97 * injected <= outliers["pixels"] <= injected
     assert json.loads((tmp_path / "a" / "manifest.json").read_text())["outliers"]["pixels"] == 0
+    # the folds' far light: 1e-3 of each frame's pixels fresh fireflies, 0.032 of the sum's,
+    # side by side there: read from the frames, each with its own replaced
+    monkeypatch.undo()
+    build_isf(fire, tmp_path / "spots", tmp_path / "d", workers=1, lambertian=False)
+    folds = json.loads((tmp_path / "d" / "manifest.json").read_text())["folds"]
+    share = re.fullmatch(r"a pass over the frames \(outliers in (\S+) of each frame's pixels\)", folds["far_light"])
+    assert share and 0.0008 < float(share.group(1)) <= 0.001
+
+
+def test_fresh_outliers_count_fireflies_not_hot_pixels():
+    """Outliers at pixels of their own in each frame (fireflies) are counted per frame; one
+    at the same pixel of every frame (a hot pixel) is not."""
+    from ilt.isf.outliers import fresh_outliers
+
+    hot = [[5, 9], [5, 9], [5, 9, 40], [9, 5]]
+    assert fresh_outliers(hot, 1000) == pytest.approx((3 - 2.25) / 3 / 1000)
+    fireflies = [[1, 2], [3, 4], [5, 6], [7, 8]]
+    assert fresh_outliers(fireflies, 1000) == pytest.approx(2 / 1000)
+    assert fresh_outliers([[], []], 1000) == 0.0 and fresh_outliers([[3, 4]], 100) == 0.02

@@ -1,4 +1,5 @@
-"""Cells that end at the scene's concave folds, read from the frames (``build-isf --fold-cells``).
+"""Cells that end at the scene's concave folds, read from the frames (build-isf's default;
+``--no-fold-cells`` turns it off).
 
 Cells are the spots' Voronoi regions, which know nothing of the surface: a spot beside a
 fold makes a cell that holds pixels of both facets, whose light differs (docs/fullres.md,
@@ -7,14 +8,19 @@ spot spacing from a pixel has a valley at a concave fold: a facet lights the fac
 the less, the nearer the fold, as that light leaves it at grazing angles. The near beams
 are left out because their own indirect light peaks about their spots and hides it.
 
-:func:`far_light` sums each frame where it is far from its spot (a pass over the frames).
+The far light is the scan's sum (``sum.exr``) less each frame's disc about its spot
+(:func:`near_chunk`, reading the disc's rows only; :func:`far_from_sum`), or, where the sum
+has no such use (no ``sum.exr``, a dark frame taken off it, fireflies crowding it:
+:data:`SUM_OUTLIER_SHARE`), each frame summed where it is far from its spot
+(:func:`far_chunk`, a pass over the frames).
 :func:`valley_barriers` smooths that light by a Gaussian of a quarter spacing and takes the
 larger eigenvalue of its Hessian, over its noise (the frames' noise model through the same
 filters). Barriers are its ridge pixels (local maxima across the valley) above
 :data:`FOLD_LOW` sigma, connected to ones above :data:`FOLD_SIGMAS`. :func:`fold_cells`
 gives each pixel to the nearest spot in its own region of the lit mask that the barriers
 leave (4-connected), except each spot's own disc, which stays its own (a barrier between
-a spot 2 px from a fold and its own pixels gave them to the neighbour).
+a spot 2 px from a fold and its own pixels gave them to the neighbour); a spot on a barrier
+pixel is in the region of the nearest pixel that is not one.
 """
 
 from __future__ import annotations

@@ -715,8 +715,8 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     are not at the same pixel in every frame (``fresh``: their share of a frame's pixels,
     fireflies) would stand side by side in it, where the sum cannot tell them, one more pass
     over the frames, each frame's replaced first."""
-    from ilt.isf.folds import (FOLD_LOW, FOLD_SIGMAS, far_chunk, far_counts, far_from_sum, fold_cells, near_chunk,
-                               spacing_of, valley_barriers)
+    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, far_chunk, far_counts, far_from_sum, fold_cells, near_chunk, \
+        valley_barriers
 
     if noise is None:
         log.info("fold cells: the frames show no noise to judge folds against (noise-free frames): cells as "
@@ -728,10 +728,10 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     crowded = sum_beams is not None and fresh * len(sum_beams) > SUM_OUTLIER_SHARE
     if frame_sum is not None and sum_beams is not None and not crowded:
         # the beams the sum holds that build-isf dropped: their whole frames (centre NaN)
-        beams = [b for b in sum_beams if b in row] + [b for b in sum_beams if b not in row]
-        centres = np.array([on_grid[row[b]] if b in row else (np.nan, np.nan) for b in beams]).reshape(-1, 2)
-        tasks = [([hdr.files[b] for b in beams[k:k + chunk]], hdr.frame_shape, centres[k:k + chunk], spacing)
-                 for k in range(0, len(beams), chunk)]
+        dropped = np.array([np.nan, np.nan])
+        tasks = [([hdr.files[b] for b in c], hdr.frame_shape,
+                  np.array([on_grid[row[b]] if b in row else dropped for b in c]).reshape(-1, 2), spacing)
+                 for c in chunks(sum_beams, chunk)]
         with beam_executor(executor, workers) as ex:
             for part in run_chunks(near_chunk, tasks, ex):
                 light += part

@@ -55,19 +55,30 @@ def peak_of(hdr: Path) -> float:
     return max(float(read_exr(f)[0].max()) for f in sorted(hdr.glob("beam-*.exr")))
 
 
-def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_NOISE_E) -> None:
+def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_NOISE_E,
+               samples: float = 0.0) -> None:
     """dst/hdr: every beam frame of src/hdr with photon and read noise, ``gain``
     photo-electrons per frame unit (see the module doc); ``read_noise`` 0: photon noise
-    alone, which never reads below zero (as a path tracer's Monte Carlo noise)."""
+    alone, which never reads below zero (as a path tracer's Monte Carlo noise).
+
+    ``samples`` > 0: a path tracer's Monte Carlo noise instead (``gain`` and ``read_noise``
+    unused): each pixel is its value times Gamma(samples, 1 / samples), a mean of
+    ``samples`` independent exponential path weights. Its relative noise, 1 / sqrt(samples),
+    is the same at every level (photon noise's falls as the light grows), it never reads
+    below zero, and its upper tail is long."""
     from ilt.io.exr import read_exr, write_exr
 
     dst.mkdir(parents=True)
     frames = sorted(src.glob("beam-*.exr"))
     for f in frames:
         image, attributes = read_exr(f)
-        e = rng.poisson(np.maximum(image.astype(np.float64), 0) * gain) + (rng.normal(0, read_noise, image.shape) if read_noise else 0.0)
+        x = np.maximum(image.astype(np.float64), 0)
+        if samples > 0:
+            out = x * rng.gamma(samples, 1.0 / samples, image.shape)
+        else:
+            out = (rng.poisson(x * gain) + (rng.normal(0, read_noise, image.shape) if read_noise else 0.0)) / gain
         keep = {k: v for k, v in attributes.items() if k.startswith("ilt:")}
-        write_exr(dst / f.name, (e / gain).astype(np.float32), ["Y"], keep)
+        write_exr(dst / f.name, out.astype(np.float32), ["Y"], keep)
     for other in src.iterdir():
         if not other.name.startswith("beam-") and other.is_file():
             shutil.copy2(other, dst / other.name)

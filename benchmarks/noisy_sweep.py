@@ -78,7 +78,8 @@ def nested_sets(scene: str, m: int) -> dict[int, list[int]]:
 
 
 def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None = None,
-          keep_covered: bool = False, read_noise: float = coverage_bench.READ_NOISE_E) -> dict:
+          keep_covered: bool = False, read_noise: float = coverage_bench.READ_NOISE_E,
+          samples: float = 0.0) -> dict:
     m, px, spot = lattice(scene)
     if spot_px is not None:   # the laser's spot, whatever the scan: sigma in full-resolution pixels
         spot = spot_px / px
@@ -87,7 +88,12 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
         refine_bench.run("simulate", scene, "--frames", "--beams", m, "--px-per-beam", px, "--spot", spot,
                          "-o", case, "--force")
     hdr = case / "hdr"
-    if electrons > 0:
+    if samples > 0:
+        noisy = case / f"hdr-mc{samples:g}"
+        if not noisy.exists():
+            coverage_bench.noisy_copy(hdr, noisy, 1.0, rng, samples=samples)
+        hdr = noisy
+    elif electrons > 0:
         noisy = case / ("hdr-noisy" if read_noise == coverage_bench.READ_NOISE_E else f"hdr-noisy-read{read_noise:g}")
         if not noisy.exists():
             coverage_bench.noisy_copy(hdr, noisy, electrons / coverage_bench.peak_of(hdr), rng, read_noise)
@@ -110,7 +116,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
                        "frame_coverage": float(manifest["coverage"]["fraction"]),
                        "m_kept": int(manifest["m"])}
     return {"scene": scene, "lattice": m, "px_per_beam": px, "spot": spot, "electrons": electrons,
-            "read_noise": read_noise,
+            "read_noise": read_noise, "samples": samples,
             "keep_covered": keep_covered,
             "base_pixels": int(mask.sum()), "scans": rows}
 
@@ -145,9 +151,11 @@ def rises(result: dict) -> list[str]:
 
 def table(result: dict, per_beam: float) -> str:
     kept = ", each built keeping the sparser scan's coverage" if result.get("keep_covered") else ""
-    read = "" if result.get("read_noise", 3.0) else ", no read noise"
+    noise = f"{result['electrons']:g} e-" + ("" if result.get("read_noise", 3.0) else ", no read noise")
+    if result.get("samples"):
+        noise = f"Monte Carlo noise of {result['samples']:g} samples (no photon or read noise)"
     lines = [(f"### {result['scene']}: lattice {result['lattice']} ({result['px_per_beam']:g} px per beam), "
-              f"{result['electrons']:g} e-{read}{kept}, over the {result['base_pixels']} pixels of the sparsest scan"), "",
+              f"{noise}{kept}, over the {result['base_pixels']} pixels of the sparsest scan"), "",
              ("| m | m kept | rig hours | covered | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
               + " | mean |"), "|---|---|---|---|" + "---|" * 10]
     for count, row in sorted(result["scans"].items()):
@@ -173,7 +181,8 @@ def plot(results: list[dict], per_beam: float, path: Path) -> None:
         for n, style in zip(range(3), ("-o", "-s", "-^")):
             ax.loglog(counts, errors[:, :, n].mean(axis=1), style, label=f"bounce {n + 1} (mean of photos)")
         ax.set_xlabel("beams")
-        ax.set_title(f"{result['scene']} ({result['electrons']:g} e-)")
+        ax.set_title(f"{result['scene']} ({result['samples']:g} samples)" if result.get("samples")
+                     else f"{result['scene']} ({result['electrons']:g} e-)")
         ax.grid(True, which="both", alpha=0.3)
         ax.set_xticks(counts, [str(c) for c in counts])
         ax.xaxis.set_minor_formatter(NullFormatter())
@@ -198,6 +207,9 @@ def main() -> None:
     ap.add_argument("--read-noise", type=float, default=coverage_bench.READ_NOISE_E,
                     help="read noise in e- (0: photon noise alone, which never reads below zero, as a path "
                          "tracer's Monte Carlo noise: ilt then measures the noise only where it is plain)")
+    ap.add_argument("--samples", type=float, default=0.0,
+                    help="a path tracer's Monte Carlo noise instead of photon and read noise: each pixel times "
+                         "Gamma(S, 1/S), relative noise 1/sqrt(S) at every level (bench_coverage.noisy_copy)")
     ap.add_argument("--keep-covered", action="store_true",
                     help="build each scan with 'ilt build-isf --keep-covered' the next sparser scan's ISF (a lab "
                          "that rescans denser, or ilt run's refine passes)")
@@ -218,7 +230,7 @@ def main() -> None:
     results = []
     for scene in filter(None, args.scenes.split(",")):
         results.append(sweep(args.scratch / f"e{args.electrons:g}", scene, args.electrons, rng, args.spot_px,
-                             args.keep_covered, args.read_noise))
+                             args.keep_covered, args.read_noise, args.samples))
         print("\n" + table(results[-1], per_beam), flush=True)
     if args.plot:
         plot(results, per_beam, args.plot)

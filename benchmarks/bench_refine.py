@@ -1,6 +1,6 @@
 """``ilt refine`` against uniform and random scans, on a pre-rendered beam lattice (issue 21).
 
-    python benchmarks/bench_refine.py [--scenes occluded,box,m] [--electrons 2e4] [--random 3]
+    python benchmarks/bench_refine.py [--scenes occluded,box,m] [--electrons 2e4 | --samples 16] [--random 3]
                                       [--lattice 2] [--added 0.5] [--oracle] [--error-map PNG]
                                       [--keep-covered] [--keep DIR] [--timing-m 4096]
 
@@ -24,7 +24,8 @@ per face), and every scan below is a subset of the lattice's beam frames, run th
 Errors: relative L2 of the full-resolution bounces 1-3 of every photo (room, flashlight,
 projector) against the exact ones, over the pixels the base scan covers, on the frames
 with photon and read noise (``--electrons`` photo-electrons at the brightest spot pixel,
-as benchmarks/bench_coverage.py makes them; 0: noise-free). The figure of merit is the
+as benchmarks/bench_coverage.py makes them; 0: noise-free), or ``--samples S``: a path
+tracer's Monte Carlo noise (each pixel times Gamma(S, 1/S), as noisy_sweep.py makes it). The figure of merit is the
 mean over photos and bounces, and the **equivalent uniform beams**: the uniform beam count
 with refine's error, interpolated as a power law over the uniform sweep; ratio to m + K.
 
@@ -248,21 +249,26 @@ def error_map(case: Path, scans: list[tuple[str, Path]], mask: np.ndarray, out: 
 
 def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: int, rng, factor: int = 2,
                 added: tuple[float, ...] = (0.5,), oracle: bool = False, map_png: Path | None = None,
-                keep_covered: bool = False) -> None:
+                keep_covered: bool = False, samples: float = 0.0) -> None:
     lattice_m, px, spot = lattice_parameters(scene, base_m, factor)
     case = root / f"{scene}-{lattice_m}"
     if not (case / "hdr").exists():
         run("simulate", scene, "--frames", "--beams", lattice_m, "--px-per-beam", px, "--spot", spot, "-o", case,
             "--force")
     hdr = case / "hdr"
-    if electrons > 0:
+    if samples > 0:   # a path tracer's Monte Carlo noise (noisy_sweep.py --samples)
+        if not (case / f"hdr-mc{samples:g}").exists():
+            coverage_bench.noisy_copy(hdr, case / f"hdr-mc{samples:g}", 1.0, rng, samples=samples)
+        hdr = case / f"hdr-mc{samples:g}"
+    elif electrons > 0:
         if not (case / "hdr-noisy").exists():
             gain = electrons / coverage_bench.peak_of(hdr)
             coverage_bench.noisy_copy(hdr, case / "hdr-noisy", gain, rng)
         hdr = case / "hdr-noisy"
-    if not (case / "lattice-spots").exists():
-        run("centroids", hdr, "-o", case / "lattice-spots")
-    spots = lattice_spots(case / "lattice-spots" / "spots.csv")
+    lattice_dir = case / ("lattice-spots" if hdr.name in ("hdr", "hdr-noisy") else f"lattice-spots-{hdr.name}")
+    if not lattice_dir.exists():
+        run("centroids", hdr, "-o", lattice_dir)
+    spots = lattice_spots(lattice_dir / "spots.csv")
     lattice_m = len(spots)   # the beams that hit a visible surface
     uniform = uniform_sets(scene, lattice_m, factor)
     base_beams = uniform[min(uniform)]
@@ -312,6 +318,7 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
                          (f"uniform {same}", scans_dir / f"uniform-{same}{kept}")], mask,
                   map_png.with_name(f"{map_png.stem}-{scene}{map_png.suffix}"))
     noise = f"{electrons:g} e-" if electrons > 0 else "noise-free"
+    noise = f"Monte Carlo noise of {samples:g} samples" if samples > 0 else noise
     noise += ", every scan past the base keeping its coverage" if keep_covered else ""
     print(f"\n### {scene}, base m = {len(base_beams)}, lattice {lattice_m} ({factor}x), {noise}; refine decided in "
           + ", ".join(f"{v:.2f} s (+{k})" for k, v in seconds.items()) + " (the command)\n")
@@ -356,6 +363,8 @@ def main():
     ap.add_argument("--base", default="occluded:48,box:108,m:48,textured:48",
                     help="base beams per scene, scene:m,...")
     ap.add_argument("--electrons", type=float, default=2e4, help="0: noise-free frames")
+    ap.add_argument("--samples", type=float, default=0.0,
+                    help="a path tracer's Monte Carlo noise instead of photon and read noise (noisy_sweep.py --samples)")
     ap.add_argument("--random", type=int, default=3, help="random draws")
     ap.add_argument("--keep", type=Path, default=None)
     ap.add_argument("--timing-m", type=int, default=0)
@@ -375,7 +384,7 @@ def main():
         for scene in filter(None, args.scenes.split(",")):    # --scenes '': the timing only
             bench_scene(root, scene, base[scene], args.electrons, args.random, rng, args.lattice,
                         tuple(float(a) for a in args.added.split(",")), args.oracle, args.error_map,
-                        args.keep_covered)
+                        args.keep_covered, args.samples)
         if args.timing_m:
             bench_timing(args.timing_m, root)
     finally:

@@ -84,6 +84,26 @@ def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_
             shutil.copy2(other, dst / other.name)
 
 
+def noisy_frames(case: Path, rng, electrons: float, read_noise: float = READ_NOISE_E,
+                 samples: float = 0.0) -> Path:
+    """The frames of ``case/hdr`` a benchmark runs on, made once: with ``samples`` > 0 the
+    Monte Carlo copy ``hdr-mcS``; else with ``electrons`` > 0 the photon and read noise copy
+    ``hdr-noisy`` (``hdr-noisy-readR`` at another read noise), ``electrons`` at the brightest
+    frame's peak; else ``hdr`` itself (:func:`noisy_copy`)."""
+    hdr = case / "hdr"
+    if samples > 0:
+        out = case / f"hdr-mc{samples:g}"
+        if not out.exists():
+            noisy_copy(hdr, out, 1.0, rng, samples=samples)
+        return out
+    if electrons > 0:
+        out = case / ("hdr-noisy" if read_noise == READ_NOISE_E else f"hdr-noisy-read{read_noise:g}")
+        if not out.exists():
+            noisy_copy(hdr, out, electrons / peak_of(hdr), rng, read_noise)
+        return out
+    return hdr
+
+
 def coverage(isf: Path) -> tuple[float, int]:
     from ilt.io.exr import read_exr
 

@@ -255,17 +255,8 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
     if not (case / "hdr").exists():
         run("simulate", scene, "--frames", "--beams", lattice_m, "--px-per-beam", px, "--spot", spot, "-o", case,
             "--force")
-    hdr = case / "hdr"
-    if samples > 0:   # a path tracer's Monte Carlo noise (noisy_sweep.py --samples)
-        if not (case / f"hdr-mc{samples:g}").exists():
-            coverage_bench.noisy_copy(hdr, case / f"hdr-mc{samples:g}", 1.0, rng, samples=samples)
-        hdr = case / f"hdr-mc{samples:g}"
-    elif electrons > 0:
-        if not (case / "hdr-noisy").exists():
-            gain = electrons / coverage_bench.peak_of(hdr)
-            coverage_bench.noisy_copy(hdr, case / "hdr-noisy", gain, rng)
-        hdr = case / "hdr-noisy"
-    lattice_dir = case / ("lattice-spots" if hdr.name in ("hdr", "hdr-noisy") else f"lattice-spots-{hdr.name}")
+    hdr = coverage_bench.noisy_frames(case, rng, electrons, samples=samples)
+    lattice_dir = case / f"lattice-spots-{hdr.name}"      # the spots of the frames the scans read
     if not lattice_dir.exists():
         run("centroids", hdr, "-o", lattice_dir)
     spots = lattice_spots(lattice_dir / "spots.csv")

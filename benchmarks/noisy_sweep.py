@@ -87,17 +87,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
     if not (case / "hdr").exists():
         refine_bench.run("simulate", scene, "--frames", "--beams", m, "--px-per-beam", px, "--spot", spot,
                          "-o", case, "--force")
-    hdr = case / "hdr"
-    if samples > 0:
-        noisy = case / f"hdr-mc{samples:g}"
-        if not noisy.exists():
-            coverage_bench.noisy_copy(hdr, noisy, 1.0, rng, samples=samples)
-        hdr = noisy
-    elif electrons > 0:
-        noisy = case / ("hdr-noisy" if read_noise == coverage_bench.READ_NOISE_E else f"hdr-noisy-read{read_noise:g}")
-        if not noisy.exists():
-            coverage_bench.noisy_copy(hdr, noisy, electrons / coverage_bench.peak_of(hdr), rng, read_noise)
-        hdr = noisy
+    hdr = coverage_bench.noisy_frames(case, rng, electrons, read_noise, samples)
     where, earlier = {}, None
     for count, beams in sorted(nested_sets(scene, m).items()):
         # --keep-covered: each scan built with the sparser scan's coverage (ilt build-isf --keep-covered)

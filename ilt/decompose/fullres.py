@@ -4,9 +4,16 @@ The sample-level recursion (:func:`ilt.transport.operators.bounce_images`) split
 photo's cell integrals; the fine operator (:mod:`ilt.isf.fine`) spreads each bounce of
 indirect light over its cell's pixels, and the direct image is what is left of the
 photo. No solve beyond the sample level's: every image comes from the recursion's own
-``r_n`` and ``L_(n+1) / t1``, and integrates over every cell to the sample-level bounce.
+``r_n`` and ``L_(n+1) / t1``, and integrates over every cell to the sample-level bounce
+(but where a cell's photo holds less light than its indirect light: below).
 The rim, the pixels just outside every cell (:func:`ilt.isf.fine.rim`), takes the
 indirect light of the nearest pixel inside, up to the photo's own.
+
+No pixel inside a cell holds more indirect light than the photo does (:class:`PhotoBound`):
+a cell's plane knows nothing of the pixels in it that are background past a silhouette,
+partly background, or in a shadow of the photo's own light, and where its light is more
+than the photo's the rest of the cell's pixels take the excess, so every image still
+integrates over the cell to its sample-level bounce.
 """
 
 from __future__ import annotations
@@ -42,6 +49,9 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     no bounces at all, and held most of the error of bounce 1 (docs/fullres.md "The
     rim"). Where the photo is dark (background past a silhouette) ``s`` is 0 and so are
     the bounces.
+
+    Inside cells: :class:`PhotoBound` (``Phi_0`` no more than the photo, the excess given to
+    the cell's other pixels).
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
     """
     image = np.asarray(photo)
@@ -76,11 +86,15 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
             if n:
                 later = later + slopes.coefficients(bounces[n] / area)
     out = {}
-    previous = previous_rim = scale = None
+    previous = previous_rim = scale = bound = None
     for n in range(count):
         residual = residual - bounces[n]                               # r_(n+1)
         terms = per_cell[:, :, n] if planes[n] is None else _add_planes(per_cell[:, :, n], planes[n])
         phi = fine.field(residual, terms, basis)                       # Phi_n
+        if n == 0:
+            bound = PhotoBound(flat[inside], phi, fine.geometry.label, m,
+                               None if excluded is None else excluded[inside])
+        phi = bound.apply(phi)
         if n == 0:
             scale = _rim_scale(flat[rim], phi[nearest], flat[inside[nearest]])   # s, of each rim pixel
         phi_rim = scale * phi[nearest]
@@ -102,6 +116,90 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
 
 #: coverage.exr's value on the rim (inside cells: 1)
 RIM_COVERAGE = 0.5
+
+
+class PhotoBound:
+    """Each pixel's indirect light inside a cell no more than the photo's light there.
+
+    A cell's ``Phi_0`` (the indirect light, all bounces past the first) is its mean and a
+    plane: it knows nothing of a pixel in it that is background past the scene's silhouette
+    (the lit test, which judges local means, lets in about 2 px of it at a bright edge when
+    the frames are noisy), partly background, or in a shadow of the photo's own light. There
+    it can hold more than the photo, and bounce 1 goes negative by as much as the others are
+    too bright. Light is never negative, so ``Phi_0 <= max(photo, 0)``.
+
+    Each pixel with positive ``Phi_0`` more than its photo keeps the share ``rho = photo /
+    Phi_0`` of every field ``Phi_n`` (the later bounces and the residual are its own light
+    too). In a cell whose photo can hold all of its indirect light, what the bounded pixels
+    gave up of each field goes to the cell's other pixels, where the bounded ``Phi_0`` is
+    ``min(c Phi_0, photo)``, ``c >= 1`` the one factor that keeps the cell's sum, each
+    field's in proportion to what ``Phi_0`` gained there: every image still integrates over
+    every cell to its sample-level bounce. A cell whose photo holds less light in all than
+    its indirect light (the sample level's own bounce 1 negative there) has no such ``c``:
+    its pixels keep ``rho`` of each field and nothing more, and its integrals are the
+    bounded ones. Saturated pixels (``excluded``) are left as they are.
+
+    photo, phi0 : (n, c) at the pixels inside cells; label : (n,) their cells.
+    """
+
+    def __init__(self, photo: np.ndarray, phi0: np.ndarray, label: np.ndarray, m: int,
+                 excluded: np.ndarray | None = None):
+        self.label, self.m = label, m
+        self.rho = np.ones(phi0.shape)
+        self.share = np.zeros(phi0.shape)          # of a kept cell's change, per pixel (sums to 1)
+        self.kept = np.zeros((m, phi0.shape[1]), bool)
+        self.bounded = 0
+        for c in range(phi0.shape[1]):
+            a, p = np.asarray(phi0[:, c], np.float64), np.maximum(np.asarray(photo[:, c], np.float64), 0.0)
+            over = a > p
+            if excluded is not None:
+                over &= ~excluded
+            if not over.any():
+                continue
+            self.bounded += int(np.count_nonzero(over))
+            touched = np.zeros(m, bool)
+            touched[label[over]] = True
+            pick = touched[label] & (a > 0)
+            if excluded is not None:
+                pick &= ~excluded
+            sel = np.flatnonzero(pick)
+            lab, aa, pp = label[sel], a[sel], p[sel]
+            self.rho[sel, c] = np.minimum(aa, pp) / aa
+            total, room = np.bincount(lab, aa, m), np.bincount(lab, pp, m)
+            feasible = touched & (room >= total)
+            gained = np.minimum(self._factor(lab, aa, pp, total)[lab] * aa, pp) - np.minimum(aa, pp)
+            gained = np.where(feasible[lab], np.maximum(gained, 0.0), 0.0)
+            weight = np.bincount(lab, gained, m)
+            self.share[sel, c] = np.where(weight[lab] > 0, gained / np.where(weight[lab] > 0, weight[lab], 1.0), 0.0)
+            self.kept[:, c] = feasible & (weight > 0)
+
+    def _factor(self, lab, aa, pp, total) -> np.ndarray:
+        """(m,) c of each cell: ``sum min(c a, p) = sum a`` (where the photo can hold it)."""
+        m = self.m
+        top = np.zeros(m)
+        np.maximum.at(top, lab, pp / aa)
+        lo, hi = np.zeros(m), np.log(np.maximum(top, 1.0))
+        for _ in range(60):                       # bisection on log c, every cell at once
+            mid = 0.5 * (lo + hi)
+            low = np.bincount(lab, np.minimum(np.exp(mid)[lab] * aa, pp), m) < total
+            lo, hi = np.where(low, mid, lo), np.where(low, hi, mid)
+        # exact on the pixels the bisection's c bounds: the rest share what those leave
+        capped = np.exp(hi)[lab] * aa >= pp
+        free = np.bincount(lab, np.where(capped, 0.0, aa), m)
+        rest = total - np.bincount(lab, np.where(capped, pp, 0.0), m)
+        return np.maximum(np.where(free > 0, rest / np.where(free > 0, free, 1.0), np.exp(hi)), 1.0)
+
+    def apply(self, phi: np.ndarray) -> np.ndarray:
+        """``Phi_n`` (n, c) bounded: ``rho`` of it per pixel, each kept cell's loss given back."""
+        if not self.bounded:
+            return phi
+        out = phi * self.rho
+        for c in range(phi.shape[1]):
+            if not self.kept[:, c].any():
+                continue
+            change = np.bincount(self.label, phi[:, c] - out[:, c], self.m)
+            out[:, c] += np.where(self.kept[:, c], change, 0.0)[self.label] * self.share[:, c]
+        return out
 
 
 def _rim_scale(photo: np.ndarray, phi0: np.ndarray, photo_inside: np.ndarray) -> np.ndarray:

@@ -35,7 +35,9 @@ field of ``r_n`` is ``Phi_n(p) = r_(n+1)[i] / area_i + sum_k b_k(p) (c_k x_n)[i]
 
 The basis sums to zero over each cell, so the full-resolution images integrate over
 every cell to the sample-level bounces exactly (to rounding): the cell-consistency
-identity, tested. Pixels outside every cell have no indirect model: their coverage is
+identity, tested (decompose then bounds each pixel's Phi_0 by the photo and keeps the
+identity wherever a cell's photo can hold its indirect light:
+:class:`ilt.decompose.fullres.PhotoBound`). Pixels outside every cell have no indirect model: their coverage is
 0, their bounces 0 and their residual the photo.
 """
 

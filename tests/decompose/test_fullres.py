@@ -73,25 +73,33 @@ def test_outputs_are_at_the_photos_resolution(scans):
 
 
 def test_pixels_close_and_cells_integrate_to_the_sample_bounces(scans):
-    """photo = bounce 1 + ... + bounce N + residual at every pixel, and each full-resolution
-    image integrates over every cell to its sample-level vector (the cell-consistency
-    identity: the basis has zero sum over each cell, the constant is T's own)."""
+    """photo = bounce 1 + ... + bounce N + residual at every pixel; bounce 1 is never
+    negative (no pixel holds more indirect light than the photo: PhotoBound); and each
+    full-resolution image integrates over every cell to its sample-level vector (the
+    cell-consistency identity: the basis has zero sum over each cell, the constant is T's
+    own, the light a bounded pixel gives up goes to its cell's others), except in the cells
+    whose sample-level bounce 1 is negative, where no pixel's can be."""
     sim, isf_dir, dec = scans[48]
     isf = load_isf(isf_dir)
+    negative = 0
     for kind in KINDS:
         out = dec / kind
         photo = _image(sim / "photos" / f"{kind}.exr")
         images = np.stack([_image(out / f"bounce-{n}.exr") for n in range(1, 9)])
         residual = _image(out / "residual.exr")
         scale = np.abs(photo).max()
+        assert photo.min() >= 0 and images[0].min() >= -1e-6 * scale
         assert np.abs(images.sum(axis=0) + residual - photo).max() < 1e-6 * scale
         bounces = np.load(out / "bounces.npy")
+        atol = 1e-6 * np.abs(bounces[0]).max()
+        kept = bounces[0] >= 0
+        negative += int(np.count_nonzero(~kept))
         for n in range(8):
-            np.testing.assert_allclose(integrate(images[n], isf.cells, isf.m), bounces[n],
-                                       atol=1e-6 * np.abs(bounces[0]).max())
-        np.testing.assert_allclose(integrate(residual, isf.cells, isf.m), np.load(out / "residual.npy"),
-                                   atol=1e-6 * np.abs(bounces[0]).max())
+            np.testing.assert_allclose(integrate(images[n], isf.cells, isf.m)[kept], bounces[n][kept], atol=atol)
+        np.testing.assert_allclose(integrate(residual, isf.cells, isf.m)[kept], np.load(out / "residual.npy")[kept],
+                                   atol=atol)
         np.testing.assert_allclose(photo - images[0], _image(out / "indirect.exr"), atol=1e-6 * scale)
+    assert negative > 0     # the flashlight's shadow: cells the bound changes are in this test
 
 
 def test_errors_against_the_per_pixel_truth_fall_as_m_grows(scans):
@@ -287,7 +295,7 @@ def test_the_rim_takes_the_nearest_cells_indirect_light_up_to_the_photos():
     beyond. A rim pixel takes each Phi_n of the nearest pixel inside (column 19 of its row)
     times s, the lesser of photo / Phi_0 and the photo's ratio to that pixel's, in [0, 1]:
     all of it under a bright photo; half of it where the photo holds half of Phi_0 and the
-    pixel inside reads less than Phi_0 (rows 0-2); an eighth where the pixel inside reads
+    pixel inside reads Phi_0 (rows 0-2); an eighth where the pixel inside reads
     8x the rim's photo (rows 3-5); none where the photo is dark. Bounce 1 is the rest, so
     the images still sum to the photo. Beyond the rim: no bounces, the residual is the photo."""
     from types import SimpleNamespace
@@ -304,7 +312,7 @@ def test_the_rim_takes_the_nearest_cells_indirect_light_up_to_the_photos():
     phi0 = (90.0 + 30.0 + 12.0) / 60                       # cell 1's Phi_0 per pixel (60 px): 2.2
     photo = np.full((6, 40, 1), 7.0, np.float32)
     photo[:, :10] = 11.3
-    photo[:3, 10:20], photo[3:, 10:20] = 2.0, 8.8
+    photo[:3, 10:20], photo[3:, 10:20] = 2.2, 8.8
     photo[:, 20:23], photo[:, 23:26], photo[:, 26:30] = 100.0, 1.1, 0.0
     images = full_resolution(fine, photo, decomposition, np.ones(2))
     got = {k: v.reshape(6, 40).astype(np.float64) for k, v in images.items()}
@@ -316,11 +324,38 @@ def test_the_rim_takes_the_nearest_cells_indirect_light_up_to_the_photos():
                          ("residual", 12.0 / 60)):
         np.testing.assert_allclose(got[name][:, rim], share * inside, rtol=1e-5)
         np.testing.assert_allclose(got[name][:, 19], inside, rtol=1e-5)
-    np.testing.assert_allclose(got["bounce-1"][:, rim], photo[:, rim, 0] - got["indirect"][:, rim], rtol=1e-5)
+    np.testing.assert_allclose(got["bounce-1"][:, rim], photo[:, rim, 0] - got["indirect"][:, rim], rtol=1e-5, atol=1e-6)
     assert np.all(got["bounce-1"][:, 26:30] == 0) and np.all(got["bounce-1"][:, 30:] == 0)
     np.testing.assert_array_equal(got["residual"][:, 30:], 7.0)
     total = sum(got[f"bounce-{n}"] for n in (1, 2, 3)) + got["residual"]
     np.testing.assert_allclose(total, photo[:, :, 0], rtol=1e-5)
+
+
+def test_no_pixel_holds_more_indirect_light_than_the_photo():
+    """Two flat cells of 10 px, each with Phi_0 = 1 a pixel (L2, L3, r = 6, 3, 1). Cell 0's
+    photo is dark on two pixels (background past a silhouette), 1.1 on two and 5 on six:
+    the dark ones take no indirect light, the 1.1 ones 1.1, and the six the rest, c = 1.3
+    each (2.2 + 6 c = 10), so the cell still holds its 10. Cell 1's photo, 0.5 a pixel, is
+    less in all than its indirect light: each pixel takes the photo's, bounce 1 is 0. The
+    later bounces and the residual are scaled by the same factor per pixel."""
+    from types import SimpleNamespace
+
+    from ilt.decompose.fullres import full_resolution
+    from ilt.isf.fine import FineOperator
+
+    labels = np.repeat([0, 1], 10)[None, :]
+    fine = FineOperator(None, CellGeometry.from_labels(labels, 2), 0, np.zeros((0, 2, 2), np.float32))
+    photo = np.array([[0, 0, 1.1, 1.1] + [5.0] * 6 + [0.5] * 10], np.float32)[:, :, None]
+    totals = photo[0, :, 0].reshape(2, 10).sum(axis=1)
+    bounces = np.array([[[totals[0] - 10.0], [totals[1] - 10.0]], [[6.0], [6.0]], [[3.0], [3.0]]])
+    decomposition = SimpleNamespace(bounces=bounces, residual=np.array([[1.0], [1.0]]), count=3)
+    got = {k: v.reshape(20).astype(np.float64) for k, v in full_resolution(fine, photo, decomposition, np.ones(2)).items()}
+    factor = np.array([0, 0, 1.1, 1.1] + [1.3] * 6 + [0.5] * 10)
+    np.testing.assert_allclose(got["indirect"], factor, rtol=1e-6)
+    np.testing.assert_allclose(got["bounce-1"], photo[0, :, 0] - factor, rtol=1e-5, atol=1e-6)
+    for name, share in (("bounce-2", 0.6), ("bounce-3", 0.3), ("residual", 0.1)):
+        np.testing.assert_allclose(got[name], share * factor, rtol=1e-5)
+    np.testing.assert_allclose(got["bounce-2"][:10].sum(), 6.0, rtol=1e-6)
 
 
 def test_the_rim_is_every_pixel_near_a_cell_and_its_nearest_pixel_inside():

@@ -25,7 +25,7 @@ from ilt.isf.fine import FineOperator
 
 def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np.ndarray,
                     excluded: np.ndarray | None = None, weights: np.ndarray | None = None,
-                    neighbour_slopes: bool = True) -> dict[str, np.ndarray]:
+                    neighbour_slopes: bool = True, report: dict | None = None) -> dict[str, np.ndarray]:
     """The photo's full-resolution bounce images (module docstring).
 
     photo : (H, W) or (H, W, c) float32, on the cells' grid; decomposition : its
@@ -51,7 +51,8 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
     the bounces.
 
     Inside cells: :class:`PhotoBound` (``Phi_0`` no more than the photo, the excess given to
-    the cell's other pixels).
+    the cell's other pixels); ``report`` (a dict), when given, gets ``bounded_pixels``: how
+    many pixels inside cells held more indirect light than the photo.
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
     """
     image = np.asarray(photo)
@@ -95,6 +96,8 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
             bound = PhotoBound(flat[inside], phi, fine.geometry.label, m,
                                None if excluded is None else excluded[inside])
         phi = bound.apply(phi)
+        if n == 0 and report is not None:
+            report["bounded_pixels"] = int(np.count_nonzero((bound.rho < 1).any(axis=1)))
         if n == 0:
             scale = _rim_scale(flat[rim], phi[nearest], flat[inside[nearest]])   # s, of each rim pixel
         phi_rim = scale * phi[nearest]

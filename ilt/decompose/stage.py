@@ -405,7 +405,11 @@ def write_decomposition(
     panels["indirect"] = first(decomposition.indirect)
     bounce_panel(samples / "preview.png", {k: vector_to_image(v, isf.layout, isf.beams) for k, v in panels.items()})
     if fine is not None and photo.image is not None:
-        images = full_resolution(fine, photo.image, decomposition, t1, photo.saturated, weights)
+        bound = {}
+        images = full_resolution(fine, photo.image, decomposition, t1, photo.saturated, weights, report=bound)
+        if "full_resolution" in diagnostics and bound:
+            # the pixels whose cell's indirect light was more than the photo held there (ilt.decompose.fullres.PhotoBound)
+            diagnostics["full_resolution"]["bounded_pixels"] = bound["bounded_pixels"]
         for name, image in images.items():
             attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name, **isf.mapping.attributes(),
                           **marked}

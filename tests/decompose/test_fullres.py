@@ -81,7 +81,7 @@ def test_pixels_close_and_cells_integrate_to_the_sample_bounces(scans):
     whose sample-level bounce 1 is negative, where no pixel's can be."""
     sim, isf_dir, dec = scans[48]
     isf = load_isf(isf_dir)
-    negative = 0
+    negative, counts = 0, {}
     for kind in KINDS:
         out = dec / kind
         photo = _image(sim / "photos" / f"{kind}.exr")
@@ -99,7 +99,15 @@ def test_pixels_close_and_cells_integrate_to_the_sample_bounces(scans):
         np.testing.assert_allclose(integrate(residual, isf.cells, isf.m)[kept], np.load(out / "residual.npy")[kept],
                                    atol=atol)
         np.testing.assert_allclose(photo - images[0], _image(out / "indirect.exr"), atol=1e-6 * scale)
+        # a bounded pixel's indirect light is its photo's, so its bounce 1 is 0: summary.json counts them
+        bounded = json.loads((out / "summary.json").read_text())["full_resolution"]["bounded_pixels"]
+        # (and pixels below it that their cell's give-back filled to it)
+        inside = _image(out / "coverage.exr") == 1
+        zero = inside & (np.abs(images[0]) <= 1e-6 * photo) & (photo > 0)
+        assert bounded <= np.count_nonzero(zero), (kind, bounded, np.count_nonzero(zero))
+        counts[kind] = bounded
     assert negative > 0     # the flashlight's shadow: cells the bound changes are in this test
+    assert counts["flashlight"] > 0
 
 
 def test_errors_against_the_per_pixel_truth_fall_as_m_grows(scans):
@@ -349,7 +357,10 @@ def test_no_pixel_holds_more_indirect_light_than_the_photo():
     totals = photo[0, :, 0].reshape(2, 10).sum(axis=1)
     bounces = np.array([[[totals[0] - 10.0], [totals[1] - 10.0]], [[6.0], [6.0]], [[3.0], [3.0]]])
     decomposition = SimpleNamespace(bounces=bounces, residual=np.array([[1.0], [1.0]]), count=3)
-    got = {k: v.reshape(20).astype(np.float64) for k, v in full_resolution(fine, photo, decomposition, np.ones(2)).items()}
+    report = {}
+    got = {k: v.reshape(20).astype(np.float64)
+           for k, v in full_resolution(fine, photo, decomposition, np.ones(2), report=report).items()}
+    assert report == {"bounded_pixels": 12}      # the two dark pixels and all of cell 1
     factor = np.array([0, 0, 1.1, 1.1] + [1.3] * 6 + [0.5] * 10)
     np.testing.assert_allclose(got["indirect"], factor, rtol=1e-6)
     np.testing.assert_allclose(got["bounce-1"], photo[0, :, 0] - factor, rtol=1e-5, atol=1e-6)

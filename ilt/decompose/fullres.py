@@ -25,7 +25,8 @@ from ilt.isf.fine import FineOperator
 
 def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np.ndarray,
                     excluded: np.ndarray | None = None, weights: np.ndarray | None = None,
-                    neighbour_slopes: bool = True, report: dict | None = None) -> dict[str, np.ndarray]:
+                    neighbour_slopes: bool = True, report: dict | None = None,
+                    photo_noise: list | None = None) -> dict[str, np.ndarray]:
     """The photo's full-resolution bounce images (module docstring).
 
     photo : (H, W) or (H, W, c) float32, on the cells' grid; decomposition : its
@@ -52,7 +53,9 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
 
     Inside cells: :class:`PhotoBound` (``Phi_0`` no more than the photo, the excess given to
     the cell's other pixels); ``report`` (a dict), when given, gets ``bounded_pixels``: how
-    many pixels inside cells held more indirect light than the photo.
+    many pixels inside cells held more indirect light than the photo. ``photo_noise``: the
+    photo's own noise, a model a channel (:func:`photo_noise_models`); the bound is then the
+    photo plus :data:`BOUND_SIGMAS` of its sigma, so that its noise stays in bounce 1.
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
     """
     image = np.asarray(photo)
@@ -93,8 +96,9 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
         terms = per_cell[:, :, n] if planes[n] is None else _add_planes(per_cell[:, :, n], planes[n])
         phi = fine.field(residual, terms, basis)                       # Phi_n
         if n == 0:
+            margin = None if photo_noise is None else _margin(flat[inside], photo_noise)
             bound = PhotoBound(flat[inside], phi, fine.geometry.label, m,
-                               None if excluded is None else excluded[inside])
+                               None if excluded is None else excluded[inside], margin)
         phi = bound.apply(phi)
         if n == 0 and report is not None:
             report["bounded_pixels"] = int(np.count_nonzero((bound.rho < 1).any(axis=1)))
@@ -120,6 +124,30 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
 #: coverage.exr's value on the rim (inside cells: 1)
 RIM_COVERAGE = 0.5
 
+#: a pixel's indirect light is bounded by its photo plus this many of the photo's own noise
+#: sigmas (:func:`photo_noise_models`): a bound at the noisy photo itself cut each pixel where the
+#: noise read low, and carried the photo's noise into every bounce past the first
+BOUND_SIGMAS = 3.0
+
+
+def photo_noise_models(image: np.ndarray) -> list | None:
+    """Each channel's noise of a photo (H, W[, c]), from the photo's own pixels: its
+    variance against its level as build-isf measures a beam frame's
+    (:func:`ilt.isf.noise.fit_frame_noise`: residuals from the 4 neighbours' mean, binned
+    by level; a :class:`~ilt.isf.noise.FrameNoise` or None a channel). None where no
+    channel shows noise (a noise-free render)."""
+    from ilt.isf.noise import fit_frame_noise
+
+    image = np.asarray(image)
+    planes = image.reshape(image.shape[0], image.shape[1], -1)
+    height = planes.shape[0]
+    # a large photo is fitted on bands of 16 rows every 64 (each its own frame to the fit, which
+    # samples at most 250,000 pixels anyway): a quarter of the filtering
+    bands = [slice(0, height)] if planes.shape[0] * planes.shape[1] <= 4_000_000 else \
+        [slice(r, r + 16) for r in range(0, height - 15, 64)]
+    models = [fit_frame_noise([planes[b, :, c] for b in bands]) for c in range(planes.shape[2])]
+    return models if any(model is not None for model in models) else None
+
 
 class PhotoBound:
     """Each pixel's indirect light inside a cell no more than the photo's light there.
@@ -129,7 +157,8 @@ class PhotoBound:
     (the lit test, which judges local means, lets in about 2 px of it at a bright edge when
     the frames are noisy), partly background, or in a shadow of the photo's own light. There
     it can hold more than the photo, and bounce 1 goes negative by as much as the others are
-    too bright. Light is never negative, so ``Phi_0 <= max(photo, 0)``.
+    too bright. Light is never negative, so ``Phi_0 <= max(photo, 0)``, plus ``margin`` (3
+    sigma of a noisy photo's own noise, which belongs in bounce 1).
 
     Each pixel with positive ``Phi_0`` more than its photo keeps the share ``rho = photo /
     Phi_0`` of every field ``Phi_n`` (the later bounces and the residual are its own light
@@ -142,11 +171,12 @@ class PhotoBound:
     its pixels keep ``rho`` of each field and nothing more, and its integrals are the
     bounded ones. Saturated pixels (``excluded``) are left as they are.
 
-    photo, phi0 : (n, c) at the pixels inside cells; label : (n,) their cells.
+    photo, phi0 : (n, c) at the pixels inside cells; label : (n,) their cells; margin :
+    (n, c) or None, added to ``max(photo, 0)`` (the photo's noise, :data:`BOUND_SIGMAS`).
     """
 
     def __init__(self, photo: np.ndarray, phi0: np.ndarray, label: np.ndarray, m: int,
-                 excluded: np.ndarray | None = None):
+                 excluded: np.ndarray | None = None, margin: np.ndarray | None = None):
         self.label, self.m = label, m
         self.rho = np.ones(phi0.shape)
         self.share = np.zeros(phi0.shape)          # of a kept cell's change, per pixel (sums to 1)
@@ -154,6 +184,8 @@ class PhotoBound:
         self.bounded = 0
         for c in range(phi0.shape[1]):
             a, p = np.asarray(phi0[:, c], np.float64), np.maximum(np.asarray(photo[:, c], np.float64), 0.0)
+            if margin is not None:
+                p = p + margin[:, c]
             over = a > p
             if excluded is not None:
                 over &= ~excluded
@@ -203,6 +235,16 @@ class PhotoBound:
             change = np.bincount(self.label, phi[:, c] - out[:, c], self.m)
             out[:, c] += np.where(self.kept[:, c], change, 0.0)[self.label] * self.share[:, c]
         return out
+
+
+def _margin(photo: np.ndarray, models: list) -> np.ndarray:
+    """(n, c) :data:`BOUND_SIGMAS` of each pixel's noise sigma, 0 in a channel without a model."""
+    out = np.zeros(photo.shape)
+    for c, model in enumerate(models):
+        if model is not None:
+            level = np.maximum(np.asarray(photo[:, c], np.float64), 0.0)
+            out[:, c] = BOUND_SIGMAS * np.sqrt(np.maximum(model.pixel_variance(level), 0.0))
+    return out
 
 
 def _rim_scale(photo: np.ndarray, phi0: np.ndarray, photo_inside: np.ndarray) -> np.ndarray:

@@ -369,6 +369,36 @@ def test_no_pixel_holds_more_indirect_light_than_the_photo():
     np.testing.assert_allclose(got["bounce-2"][:10].sum(), 6.0, rtol=1e-6)
 
 
+def test_a_noisy_photo_keeps_its_noise_in_bounce_1():
+    """Four flat cells of 32 x 32 px whose indirect light is 1 a pixel, under a photo of 1.1
+    with 10% noise: bounded at the photo itself, every pixel where the noise reads under 1
+    is cut (z < -0.91: 18% of them) and that noise carried into the later bounces; the
+    photo's own noise, measured from its pixels (sigma within 20% of 0.11), widens the bound
+    by 3 sigma and none is (z < -3.9)."""
+    from types import SimpleNamespace
+
+    from ilt.decompose.fullres import full_resolution, photo_noise_models
+    from ilt.isf.fine import FineOperator
+
+    labels = (np.arange(64)[:, None] // 32) * 2 + (np.arange(64)[None, :] // 32)
+    fine = FineOperator(None, CellGeometry.from_labels(labels, 4), 0, np.zeros((0, 4, 4), np.float32))
+    rng = np.random.default_rng(3)
+    photo = (1.1 * (1 + 0.1 * rng.standard_normal((64, 64)))).astype(np.float32)[:, :, None]
+    models = photo_noise_models(photo)
+    assert models is not None and 0.8 * 0.11 < np.sqrt(models[0].pixel_variance(np.array([1.1])))[0] < 1.2 * 0.11
+    totals = integrate(photo[:, :, 0], labels, 4)
+    decomposition = SimpleNamespace(bounces=np.stack([totals - 1024.0, np.full(4, 614.4), np.full(4, 307.2)])[:, :, None],
+                                    residual=np.full((4, 1), 102.4), count=3)
+    for noise, most in ((None, None), (models, 0.0)):
+        report = {}
+        images = full_resolution(fine, photo, decomposition, np.ones(4), report=report, photo_noise=noise)
+        if noise is None:
+            assert 0.12 * 4096 < report["bounded_pixels"] < 0.25 * 4096
+        else:
+            assert report["bounded_pixels"] <= most * 4096
+            np.testing.assert_allclose(images["indirect"][:, :, 0], 1.0, rtol=1e-5)
+
+
 def test_the_rim_is_every_pixel_near_a_cell_and_its_nearest_pixel_inside():
     """Against brute force on random cells: the rim is the pixels outside every cell within
     RIM_PX (chessboard) of one, and each is paired with an inside pixel at its least

@@ -55,12 +55,25 @@ def seconds_per_beam() -> float:
 
 
 def lattice(scene: str) -> tuple[int, float, float]:
-    """(beams, px_per_beam, spot in beam spacings) of the scene's lattice."""
+    """(beams, px_per_beam, spot in beam spacings) of the scene's lattice: the frame and the
+    spot's size in pixels are those of the 384-beam (box: 12 x 12 a face) lattice whatever
+    the lattice (one camera, one laser: ``--dense`` puts twice the beams in the same frame)."""
     if scene == "box":
         m = 3 * BOX_SIDE * BOX_SIDE
-        return m, 10.0, 0.05 * 16.0 / 10.0
-    px, spot = coverage_bench.frame_parameters(scene, FLATLAND_LATTICE)
-    return FLATLAND_LATTICE, px, spot
+        px = 10.0 * 12 / BOX_SIDE
+        return m, px, 0.05 * 16.0 / px
+    px, spot = coverage_bench.frame_parameters(scene, 384)
+    scale = 384 / FLATLAND_LATTICE
+    return FLATLAND_LATTICE, px * scale, spot / scale
+
+
+def dense() -> None:
+    """``--dense``: lattices of 768 beams (flatland at half the pixels per beam, every 16th
+    ... every beam: 48 to 768; the box 16 x 16 a face, every 4th, 2nd and each row and
+    column: 48, 192, 768), in the same frames as the default's."""
+    global FLATLAND_LATTICE, FLATLAND_STRIDES, BOX_SIDE, BOX_STRIDES
+    FLATLAND_LATTICE, FLATLAND_STRIDES = 768, (16, 8, 4, 2, 1)
+    BOX_SIDE, BOX_STRIDES = 16, (4, 2, 1)
 
 
 def nested_sets(scene: str, m: int) -> dict[int, list[int]]:
@@ -203,6 +216,8 @@ def main() -> None:
     ap.add_argument("--keep-covered", action="store_true",
                     help="build each scan with 'ilt build-isf --keep-covered' the next sparser scan's ISF (a lab "
                          "that rescans denser, or ilt run's refine passes)")
+    ap.add_argument("--dense", action="store_true",
+                    help="lattices of 768 beams in the same frames (scans of 48 ... 768 beams)")
     ap.add_argument("--scratch", type=Path, help="renders and scans (kept: a rerun reuses them)")
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--json", type=Path)
@@ -214,6 +229,8 @@ def main() -> None:
         return
     if args.scratch is None:
         ap.error("--scratch is required (unless --replot)")
+    if args.dense:
+        dense()
     per_beam = seconds_per_beam()
     print(f"rig time: {per_beam:.1f} s a beam (ilt capture --estimate configs/rig-example.toml)")
     rng = np.random.default_rng(0)

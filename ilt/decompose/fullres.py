@@ -128,6 +128,8 @@ RIM_COVERAGE = 0.5
 #: sigmas (:func:`photo_noise_models`): a bound at the noisy photo itself cut each pixel where the
 #: noise read low, and carried the photo's noise into every bounce past the first
 BOUND_SIGMAS = 3.0
+#: bisection steps for each cell's give-back factor (on log c; the last step is exact)
+BISECTIONS = 40
 
 
 def photo_noise_models(image: np.ndarray) -> list | None:
@@ -209,19 +211,25 @@ class PhotoBound:
             self.kept[:, c] = feasible & (weight > 0)
 
     def _factor(self, lab, aa, pp, total) -> np.ndarray:
-        """(m,) c of each cell: ``sum min(c a, p) = sum a`` (where the photo can hold it)."""
+        """(m,) c of each cell: ``sum min(c a, p) = sum a`` (where the photo can hold it).
+        A pixel with ``p < a`` is bounded at every ``c >= 1``: its ``p`` is a constant of the
+        cell's sum, and the bisection runs on the others only."""
         m = self.m
+        ratio = pp / aa
         top = np.zeros(m)
-        np.maximum.at(top, lab, pp / aa)
+        np.maximum.at(top, lab, ratio)
+        fixed = ratio < 1.0
+        base = np.bincount(lab[fixed], pp[fixed], m)
+        lab, aa, pp = lab[~fixed], aa[~fixed], pp[~fixed]
         lo, hi = np.zeros(m), np.log(np.maximum(top, 1.0))
-        for _ in range(60):                       # bisection on log c, every cell at once
+        for _ in range(BISECTIONS):               # on log c, every cell at once
             mid = 0.5 * (lo + hi)
-            low = np.bincount(lab, np.minimum(np.exp(mid)[lab] * aa, pp), m) < total
+            low = base + np.bincount(lab, np.minimum(np.exp(mid)[lab] * aa, pp), m) < total
             lo, hi = np.where(low, mid, lo), np.where(low, hi, mid)
         # exact on the pixels the bisection's c bounds: the rest share what those leave
         capped = np.exp(hi)[lab] * aa >= pp
         free = np.bincount(lab, np.where(capped, 0.0, aa), m)
-        rest = total - np.bincount(lab, np.where(capped, pp, 0.0), m)
+        rest = total - base - np.bincount(lab, np.where(capped, pp, 0.0), m)
         return np.maximum(np.where(free > 0, rest / np.where(free > 0, free, 1.0), np.exp(hi)), 1.0)
 
     def apply(self, phi: np.ndarray) -> np.ndarray:

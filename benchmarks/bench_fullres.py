@@ -1,6 +1,6 @@
 """Speed, memory and size of the fine operator (full-resolution bounce images, ilt/isf/fine.py, ilt/decompose/fullres.py).
 
-    python benchmarks/bench_fullres.py [--quick] [--case build|memory|all]
+    python benchmarks/bench_fullres.py [--quick] [--case build|memory|bound|all]
            [--build-beams 1024 --build-size 640x480] [--memory-beams 4096 --memory-size 1280x960]
 
 Two cases, on synthetic beam frames (not rendered: ilt.sim.render is far too slow at
@@ -456,7 +456,8 @@ def size(text: str) -> tuple[int, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--case", choices=("build", "memory", "all"), default="all", help="which case (default: both)")
+    parser.add_argument("--case", choices=("build", "memory", "bound", "all"), default="all",
+                        help="which case (default: all)")
     parser.add_argument("--quick", action="store_true",
                         help="build: m = 256 on 320 x 240; memory: m = 1024 on 640 x 480; 1 repeat")
     parser.add_argument("--build-beams", type=int, default=1024, help="m of the build case (default 1024)")
@@ -500,6 +501,42 @@ def main() -> None:
         if args.case in ("memory", "all"):
             case_memory(root / "memory", args.memory_beams, *args.memory_size, args.workers, args.repeats,
                         args.memory_read, args.noise, args.photo_channels)
+        if args.case in ("bound", "all"):
+            case_bound(args.repeats, (1000, 750, 1024) if args.quick else (4000, 3000, 4096))
+
+
+def case_bound(repeats: int, size: tuple[int, int, int]) -> None:
+    """The photo's bound (:class:`ilt.decompose.fullres.PhotoBound`) at its worst: a channel of
+    W x H pixels in m square cells, each cell's indirect light 1 a pixel under a photo uniform
+    in [0.5, 1.6], so every cell holds pixels over the photo (5/11 of them); and the photo's
+    own noise model (:func:`~ilt.decompose.fullres.photo_noise_models`) of an RGB photo of that
+    size with 5% noise. Medians of ``repeats``."""
+    from ilt.decompose.fullres import PhotoBound, photo_noise_models
+
+    width, height, m = size
+    side = int(round(np.sqrt(m)))
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[:height, :width]
+    label = ((yy * side // height) * side + (xx * side // width)).ravel().astype(np.int64)
+    phi0 = np.ones((label.size, 1))
+    photo = rng.uniform(0.5, 1.6, (label.size, 1)).astype(np.float32)
+    init, field = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        bound = PhotoBound(photo, phi0, label, side * side)
+        t1 = time.perf_counter()
+        bound.apply(phi0)
+        field.append(time.perf_counter() - t1)
+        init.append(t1 - t0)
+    rgb = (0.5 + rng.normal(0, 0.025, (height, width, 3))).astype(np.float32)
+    fits = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        photo_noise_models(rgb)
+        fits.append(time.perf_counter() - t0)
+    print(f"bound: {width} x {height}, {side * side} cells, {bound.bounded} pixels over the photo: "
+          f"{np.median(init):.2f} s a channel, then {np.median(field):.2f} s a field; the photo's noise "
+          f"model (RGB) {np.median(fits):.2f} s (medians of {repeats})", flush=True)
 
 
 if __name__ == "__main__":

@@ -534,7 +534,7 @@ def case_bound(repeats: int, size: tuple[int, int, int]) -> None:
         t0 = time.perf_counter()
         photo_noise_models(rgb)
         fits.append(time.perf_counter() - t0)
-    print(f"bound: {width} x {height}, {side * side} cells, {bound.bounded} pixels over the photo: "
+    print(f"bound: {width} x {height}, {side * side} cells, {bound.bounded_pixels} pixels over the photo: "
           f"{np.median(init):.2f} s a channel, then {np.median(field):.2f} s a field; the photo's noise "
           f"model (RGB) {np.median(fits):.2f} s (medians of {repeats})", flush=True)
 

@@ -26,7 +26,7 @@ from ilt.isf.fine import FineOperator
 def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np.ndarray,
                     excluded: np.ndarray | None = None, weights: np.ndarray | None = None,
                     neighbour_slopes: bool = True, report: dict | None = None,
-                    photo_noise: list | None = None) -> dict[str, np.ndarray]:
+                    photo_noise=None) -> dict[str, np.ndarray]:
     """The photo's full-resolution bounce images (module docstring).
 
     photo : (H, W) or (H, W, c) float32, on the cells' grid; decomposition : its
@@ -53,9 +53,11 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
 
     Inside cells: :class:`PhotoBound` (``Phi_0`` no more than the photo, the excess given to
     the cell's other pixels); ``report`` (a dict), when given, gets ``bounded_pixels``: how
-    many pixels inside cells held more indirect light than the photo. ``photo_noise``: the
-    photo's own noise, a model a channel (:func:`photo_noise_models`); the bound is then the
-    photo plus :data:`BOUND_SIGMAS` of its sigma, so that its noise stays in bounce 1.
+    many pixels inside cells held more indirect light than the photo, and ``bound``: what
+    bounded them. ``photo_noise``: the photo's own noise, a model a channel, or a function of
+    the photo that measures it (:func:`photo_noise_models`: called only when some pixel's
+    ``Phi_0`` is over the photo itself); the bound is then the photo plus
+    :data:`BOUND_SIGMAS` of its sigma, so that its noise stays in bounce 1.
     Memory: two fields of the pixels inside cells in float64 at a time, and the outputs.
     """
     image = np.asarray(photo)
@@ -96,12 +98,12 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
         terms = per_cell[:, :, n] if planes[n] is None else _add_planes(per_cell[:, :, n], planes[n])
         phi = fine.field(residual, terms, basis)                       # Phi_n
         if n == 0:
-            margin = None if photo_noise is None else _margin(flat[inside], photo_noise)
-            bound = PhotoBound(flat[inside], phi, fine.geometry.label, m,
-                               None if excluded is None else excluded[inside], margin)
+            bound, models = _photo_bound(flat[inside], phi, fine.geometry.label, m,
+                                         None if excluded is None else excluded[inside], photo_noise, image)
+            if report is not None:
+                report.update(bounded_pixels=bound.bounded_pixels, bound="the photo" if models is None else
+                              f"the photo + {BOUND_SIGMAS:g} sigma of its own noise")
         phi = bound.apply(phi)
-        if n == 0 and report is not None:
-            report["bounded_pixels"] = int(np.count_nonzero((bound.rho < 1).any(axis=1)))
         if n == 0:
             scale = _rim_scale(flat[rim], phi[nearest], flat[inside[nearest]])   # s, of each rim pixel
         phi_rim = scale * phi[nearest]
@@ -183,7 +185,7 @@ class PhotoBound:
         self.rho = np.ones(phi0.shape)
         self.share = np.zeros(phi0.shape)          # of a kept cell's change, per pixel (sums to 1)
         self.kept = np.zeros((m, phi0.shape[1]), bool)
-        self.bounded = 0
+        self.any = False                           # a pixel over the photo in some channel
         for c in range(phi0.shape[1]):
             a, p = np.asarray(phi0[:, c], np.float64), np.maximum(np.asarray(photo[:, c], np.float64), 0.0)
             if margin is not None:
@@ -193,7 +195,7 @@ class PhotoBound:
                 over &= ~excluded
             if not over.any():
                 continue
-            self.bounded += int(np.count_nonzero(over))
+            self.any = True
             touched = np.zeros(m, bool)
             touched[label[over]] = True
             pick = touched[label] & (a > 0)
@@ -204,8 +206,16 @@ class PhotoBound:
             self.rho[sel, c] = np.minimum(aa, pp) / aa
             total, room = np.bincount(lab, aa, m), np.bincount(lab, pp, m)
             feasible = touched & (room >= total)
-            gained = np.minimum(self._factor(lab, aa, pp, total)[lab] * aa, pp) - np.minimum(aa, pp)
-            gained = np.where(feasible[lab], np.maximum(gained, 0.0), 0.0)
+            held = feasible[lab]          # the give-back only where a cell's photo can hold its light
+            every = bool(held.all())
+            lab_h, aa_h, pp_h = (lab, aa, pp) if every else (lab[held], aa[held], pp[held])
+            gained_h = np.maximum(np.minimum(self._factor(lab_h, aa_h, pp_h, total)[lab_h] * aa_h, pp_h)
+                                  - np.minimum(aa_h, pp_h), 0.0)
+            if every:
+                gained = gained_h
+            else:
+                gained = np.zeros(sel.size)
+                gained[held] = gained_h
             weight = np.bincount(lab, gained, m)
             self.share[sel, c] = np.where(weight[lab] > 0, gained / np.where(weight[lab] > 0, weight[lab], 1.0), 0.0)
             self.kept[:, c] = feasible & (weight > 0)
@@ -232,9 +242,14 @@ class PhotoBound:
         rest = total - base - np.bincount(lab, np.where(capped, pp, 0.0), m)
         return np.maximum(np.where(free > 0, rest / np.where(free > 0, free, 1.0), np.exp(hi)), 1.0)
 
+    @property
+    def bounded_pixels(self) -> int:
+        """The pixels over the photo (in any channel)."""
+        return int(np.count_nonzero((self.rho < 1).any(axis=1)))
+
     def apply(self, phi: np.ndarray) -> np.ndarray:
         """``Phi_n`` (n, c) bounded: ``rho`` of it per pixel, each kept cell's loss given back."""
-        if not self.bounded:
+        if not self.any:
             return phi
         out = phi * self.rho
         for c in range(phi.shape[1]):
@@ -243,6 +258,20 @@ class PhotoBound:
             change = np.bincount(self.label, phi[:, c] - out[:, c], self.m)
             out[:, c] += np.where(self.kept[:, c], change, 0.0)[self.label] * self.share[:, c]
         return out
+
+
+def _photo_bound(photo, phi0, label, m, excluded, photo_noise, image):
+    """:class:`PhotoBound` of ``Phi_0`` and the photo's noise models it used (None: none).
+    ``photo_noise`` a function is called on ``image`` only when some pixel is over the
+    photo itself: a margin can only take pixels out of the bound."""
+    models = photo_noise
+    if callable(photo_noise):
+        over = np.asarray(phi0) > np.maximum(np.asarray(photo, np.float64), 0.0)
+        if excluded is not None:
+            over &= ~excluded[:, None]
+        models = photo_noise(image) if over.any() else None
+    margin = None if models is None else _margin(photo, models)
+    return PhotoBound(photo, phi0, label, m, excluded, margin), models
 
 
 def _margin(photo: np.ndarray, models: list) -> np.ndarray:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ilt.decompose.fullres import BOUND_SIGMAS, full_resolution, photo_noise_models
+from ilt.decompose.fullres import full_resolution, photo_noise_models
 from ilt.decompose.noise import MAX_M, bounce_sigma, draws_for, entry_noise, photo_model, photo_noise
 from ilt.io.exr import ImageError, read_exr, write_exr
 from ilt.io.frames import FrameError, PixelMapping
@@ -406,14 +406,12 @@ def write_decomposition(
     bounce_panel(samples / "preview.png", {k: vector_to_image(v, isf.layout, isf.beams) for k, v in panels.items()})
     if fine is not None and photo.image is not None:
         bound = {}
-        own = photo_noise_models(photo.image)      # the photo's own noise: the bound leaves it in bounce 1
+        # the photo's own noise (measured when needed) widens the bound: it stays in bounce 1
         images = full_resolution(fine, photo.image, decomposition, t1, photo.saturated, weights, report=bound,
-                                 photo_noise=own)
-        if "full_resolution" in diagnostics and bound:
+                                 photo_noise=photo_noise_models)
+        if "full_resolution" in diagnostics:
             # the pixels whose cell's indirect light was more than the photo held there (ilt.decompose.fullres.PhotoBound)
-            diagnostics["full_resolution"]["bounded_pixels"] = bound["bounded_pixels"]
-            diagnostics["full_resolution"]["bound"] = (
-                "the photo" if own is None else f"the photo + {BOUND_SIGMAS:g} sigma of its own noise")
+            diagnostics["full_resolution"].update(bound)
         for name, image in images.items():
             attributes = {"ilt:source": str(photo.path.name), "ilt:quantity": name, **isf.mapping.attributes(),
                           **marked}

@@ -360,7 +360,7 @@ def test_no_pixel_holds_more_indirect_light_than_the_photo():
     report = {}
     got = {k: v.reshape(20).astype(np.float64)
            for k, v in full_resolution(fine, photo, decomposition, np.ones(2), report=report).items()}
-    assert report == {"bounded_pixels": 12}      # the two dark pixels and all of cell 1
+    assert report == {"bounded_pixels": 12, "bound": "the photo"}      # the two dark pixels and all of cell 1
     factor = np.array([0, 0, 1.1, 1.1] + [1.3] * 6 + [0.5] * 10)
     np.testing.assert_allclose(got["indirect"], factor, rtol=1e-6)
     np.testing.assert_allclose(got["bounce-1"], photo[0, :, 0] - factor, rtol=1e-5, atol=1e-6)
@@ -396,7 +396,15 @@ def test_a_noisy_photo_keeps_its_noise_in_bounce_1():
             assert 0.12 * 4096 < report["bounded_pixels"] < 0.25 * 4096
         else:
             assert report["bounded_pixels"] <= most * 4096
+            assert report["bound"] == "the photo + 3 sigma of its own noise"
             np.testing.assert_allclose(images["indirect"][:, :, 0], 1.0, rtol=1e-5)
+    # given as the function that measures it, the noise is measured only when a pixel is over the photo
+    calls = []
+    measure = lambda image: calls.append(image.shape) or photo_noise_models(image)   # noqa: E731
+    full_resolution(fine, photo, decomposition, np.ones(4), report=report, photo_noise=measure)
+    assert calls == [(64, 64, 1)] and report["bounded_pixels"] == 0
+    full_resolution(fine, photo + 1.0, decomposition, np.ones(4), report=report, photo_noise=measure)
+    assert calls == [(64, 64, 1)] and report == {"bounded_pixels": 0, "bound": "the photo"}
 
 
 def test_the_rim_is_every_pixel_near_a_cell_and_its_nearest_pixel_inside():

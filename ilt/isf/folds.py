@@ -38,6 +38,12 @@ FOLD_LOW = 3.0
 SUM_OUTLIER_SHARE = 1e-3
 #: the Gaussian's sigma as a share of the spot spacing, and its bounds (px)
 SMOOTH_SHARE, SMOOTH_MIN, SMOOTH_MAX = 0.25, 2.0, 8.0
+#: a long barrier's ends carried on along its valley's floor where that is this many sigmas
+#: above the noise, up to this many spot spacings and within this many px of its axis (:func:`_follow`)
+FOLD_FOLLOW, FOLLOW_SPACINGS, FOLLOW_WIDTH = 1.5, 4.0, 1.5
+#: a barrier that encloses nothing still ends the cells whose lines to their spots cross
+#: it, if it spans this many spot spacings (noise's stray ridges span under 1.6)
+LONG_SPACINGS = 2.0
 
 
 def spacing_of(centroids: np.ndarray) -> float:
@@ -165,7 +171,54 @@ def valley_barriers(light: np.ndarray, count: np.ndarray, noise, lit: np.ndarray
     keep = np.zeros(regions.max() + 1, bool)
     keep[np.unique(regions[strong])] = True
     keep[0] = False
-    return keep[regions]
+    barriers = keep[regions]
+    _follow(barriers, ridge & lit & (z > FOLD_FOLLOW), z, LONG_SPACINGS * spacing, int(np.ceil(FOLLOW_SPACINGS * spacing)))
+    return barriers
+
+
+def _follow(barriers: np.ndarray, floor: np.ndarray, z: np.ndarray, extent: float, steps: int) -> None:
+    """The two ends of each barrier that spans ``extent`` px (its pixels farthest along its
+    principal axis) carried on (in place) along the valley's ``floor`` pixels (its ridge,
+    over :data:`FOLD_FOLLOW` sigma, lit): a step to the one of the pixels ahead (within 45
+    degrees of the axis, outwards, and near it) that is on the floor, the highest ``z`` of them, while
+    one is, up to ``steps``, ending where it meets another barrier pixel. A fold's valley
+    fades towards the light's edge, where fewer far beams light it, and its barrier stops
+    short of that edge, enclosing nothing; the floor still runs on there in a line, where
+    noise's ridges do not. The steps stay within :data:`FOLLOW_WIDTH` px of the axis through
+    the end (the highest ridge pixel of a faint valley drifts with its noise: a step at 45
+    degrees each row carried the textured M's fold 5 columns into the facet it faces). (A branch off the line is not carried on: ahead of its end the
+    floor is the valley's shoulder, ridges of noise, and a branch carried across a cell
+    gave that cell's far side to spots two cells away.)"""
+    from scipy.ndimage import find_objects, label
+
+    height, width = barriers.shape
+    lines, _ = label(barriers, np.ones((3, 3), bool))
+    for i, box in enumerate(find_objects(lines), start=1):
+        if max(box[0].stop - box[0].start, box[1].stop - box[1].start) < extent:
+            continue
+        rows, cols = np.nonzero(lines[box] == i)
+        rows, cols = rows + box[0].start, cols + box[1].start
+        points = np.column_stack([rows, cols]).astype(np.float64)
+        axis = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[2][0]
+        along = (points - points.mean(axis=0)) @ axis
+        for end, direction in ((np.argmax(along), axis), (np.argmin(along), -axis)):
+            r, c = start = int(rows[end]), int(cols[end])
+            ahead = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)
+                     if (dr or dc) and (dr * direction[0] + dc * direction[1]) / np.hypot(dr, dc) > 0.7]
+            for _ in range(steps):
+                options = [(r + dr, c + dc) for dr, dc in ahead
+                           if 0 <= r + dr < height and 0 <= c + dc < width and floor[r + dr, c + dc]
+                           and abs((r + dr - start[0]) * direction[1] - (c + dc - start[1]) * direction[0]) <= FOLLOW_WIDTH]
+                if not options:
+                    break
+                previous = (r, c)
+                r, c = max(options, key=lambda p: z[p])
+                if barriers[r, c]:
+                    break
+                around = barriers[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2].sum() - barriers[previous]
+                barriers[r, c] = True
+                if around > 0:
+                    break                                      # it met another barrier
 
 
 def _weight(sigma: float) -> float:
@@ -214,8 +267,114 @@ def fold_cells(labels: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, 
             _, nearest = cKDTree(centroids[mine]).query(np.column_stack([pixels % width, pixels // width]))
             out[pixels] = mine[nearest]
     out = out.reshape(labels.shape)
+    blocked = _line_of_sight(out, centroids, barriers, regions, spot_region, disc, spacing)
     return out, {"barrier_pixels": int(barriers.sum()), "moved_pixels": int(np.count_nonzero(out != labels)),
-                 "regions": int(count)}
+                 "regions": int(count), "blocked_pixels": blocked}
+
+
+def _closed(barriers: np.ndarray) -> np.ndarray:
+    """``barriers`` made 4-connected: where two barrier pixels touch only at a corner, the
+    pixel beside both on one side is added. A straight segment that crosses such a line
+    runs at least 1/sqrt(2) px inside it, so samples 0.5 px apart land on it."""
+    out = barriers.copy()
+    out[:-1, :-1] |= barriers[:-1, 1:] & barriers[1:, :-1] & ~barriers[:-1, :-1] & ~barriers[1:, 1:]
+    out[:-1, 1:] |= barriers[:-1, :-1] & barriers[1:, 1:] & ~barriers[:-1, 1:] & ~barriers[1:, :-1]
+    return out
+
+
+def _crosses(wall: np.ndarray, start: np.ndarray, end: np.ndarray, step: float = 0.5) -> np.ndarray:
+    """(n,) bool: whether the segment from each ``start`` to ``end`` pixel ((n, 2) x, y)
+    passes a ``wall`` pixel between them (its two ends' own pixels not counted)."""
+    height, width = wall.shape
+    out = np.zeros(len(start), bool)
+    delta = end - start
+    steps = np.ceil(np.hypot(delta[:, 0], delta[:, 1]) / step).astype(int)
+    first, last = np.rint(start).astype(int), np.rint(end).astype(int)
+    for lo in range(0, len(start), 4096):
+        hi = min(lo + 4096, len(start))
+        n = int(steps[lo:hi].max(initial=0))
+        if n < 2:
+            continue
+        t = np.arange(1, n) / n                                                   # (n - 1,)
+        share = np.minimum(t[None, :] * n / np.maximum(steps[lo:hi, None], 1), 1.0)
+        xs = np.rint(start[lo:hi, 0, None] + share * delta[lo:hi, 0, None]).astype(int)
+        ys = np.rint(start[lo:hi, 1, None] + share * delta[lo:hi, 1, None]).astype(int)
+        own = ((xs == first[lo:hi, 0, None]) & (ys == first[lo:hi, 1, None])) | \
+              ((xs == last[lo:hi, 0, None]) & (ys == last[lo:hi, 1, None]))
+        hit = wall[np.clip(ys, 0, height - 1), np.clip(xs, 0, width - 1)] & ~own
+        out[lo:hi] = hit.any(axis=1)
+    return out
+
+
+def _long(barriers: np.ndarray, extent: float, edge: int) -> np.ndarray:
+    """The barriers' pixels farther than ``edge`` px from the frame's edge (where the
+    filters' mirror makes valleys of their own) whose 8-connected line spans at least
+    ``extent`` px along x or y (noise's ridges are short)."""
+    from scipy.ndimage import find_objects, label
+
+    inner = np.zeros_like(barriers)
+    inner[edge:barriers.shape[0] - edge, edge:barriers.shape[1] - edge] = \
+        barriers[edge:barriers.shape[0] - edge, edge:barriers.shape[1] - edge]
+    lines, _ = label(inner, np.ones((3, 3), bool))
+    keep = np.zeros(lines.max() + 1, bool)
+    for i, box in enumerate(find_objects(lines), start=1):
+        keep[i] = max(box[0].stop - box[0].start, box[1].stop - box[1].start) >= extent
+    return keep[lines]
+
+
+def _line_of_sight(out: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, regions: np.ndarray,
+                   spot_region: np.ndarray, disc: float, spacing: float, candidates: int = 8) -> int:
+    """A barrier that ends short of the light's edge encloses nothing, and the regions leave
+    the cells about it as they were; so each lit pixel whose straight line to its cell's spot
+    crosses a barrier goes (in place, in ``out``) to the nearest of its ``candidates``
+    nearest spots within a ``spacing`` of it and in its own region that it sees (no barrier
+    between), if any (a barrier's short branch into a cell, noise's, would otherwise give
+    its far side to spots two cells away), but for the spots' own discs and the barrier
+    pixels themselves. Returns how many pixels were blocked."""
+    from scipy.ndimage import distance_transform_cdt
+    from scipy.spatial import cKDTree
+
+    edge = int(np.ceil(np.clip(SMOOTH_SHARE * spacing, SMOOTH_MIN, SMOOTH_MAX))) + 1
+    height, width = out.shape
+    wall = _closed(_long(barriers, LONG_SPACINGS * spacing, edge))
+    if not wall.any():
+        return 0
+    flat = out.ravel()
+    lit = np.flatnonzero((flat >= 0) & ~(wall | barriers).ravel())
+    if lit.size == 0:
+        return 0
+    xy = np.column_stack([lit % width, lit // width]).astype(np.float64)
+    own = centroids[flat[lit]]
+    # a line to the spot can cross a barrier only if one is nearer the pixel than the spot is
+    # (the chessboard distance, at most the Euclidean one, and a third of its time)
+    to_wall = distance_transform_cdt(~wall, metric="chessboard").ravel()[lit]
+    length = np.hypot(*(own - xy).T)
+    near = (to_wall <= length) & (length > disc)
+    idx = np.flatnonzero(near)
+    if idx.size == 0:
+        return 0
+    hit = _crosses(wall, xy[idx], own[idx])
+    idx = idx[hit]
+    if idx.size == 0:
+        return 0
+    tree = cKDTree(centroids)
+    k = min(candidates, len(centroids))
+    _, order = tree.query(xy[idx], k=k, distance_upper_bound=spacing * (1 + 1e-9))
+    order = order.reshape(len(idx), k)
+    region = regions.ravel()[lit[idx]]
+    choice = np.full(len(idx), -1)
+    for j in range(k):
+        open_ = np.flatnonzero((choice < 0) & (order[:, j] < len(centroids)))
+        if open_.size == 0:
+            break
+        spot = order[open_, j]
+        same = spot_region[spot] == region[open_]
+        test = open_[same]
+        seen = ~_crosses(wall, xy[idx[test]], centroids[order[test, j]])
+        choice[test[seen]] = order[test[seen], j]
+    moved = choice >= 0
+    flat[lit[idx[moved]]] = choice[moved]
+    return int(idx.size)
 
 
 def _nearest_region(regions: np.ndarray, pixel: np.ndarray, reach: int) -> int:

@@ -85,6 +85,65 @@ def test_a_spot_on_a_barrier_keeps_its_cell_on_its_side():
     assert past.sum() == 2 * 32 and np.all(out[past] == 1)
     assert np.all(out[labels == 2] == 2)
 
+def test_a_barrier_short_of_the_lights_edge_ends_the_cells_whose_lines_cross_it():
+    """A fold at x = 52 seen over rows 55-104 of 160 (the valley fades before the light
+    ends): it encloses nothing, one region. A pixel past it goes to B (within a spacing of
+    it) wherever its straight line to A crosses the barrier's rows, and stays A's where that
+    line passes beyond its ends, as do A's disc and the pixels left of the fold."""
+    from ilt.isf.cells import voronoi_cells
+
+    centroids = np.array([[50.0, 80.0], [70.0, 80.0]])
+    labels = voronoi_cells(centroids, (160, 120))
+    barriers = np.zeros((160, 120), bool)
+    barriers[55:105, 52] = True
+    out, record = fold_cells(labels, centroids, barriers, spacing=20.0)
+    assert record["regions"] == 1
+    rows, cols = np.mgrid[:160, :120]
+    past = (labels == 0) & (cols > 52) & (np.hypot(cols - 50, rows - 80) > 5.0)
+
+    def row_at(x):                                        # the row of the line to A at column x
+        return rows + (80 - rows) * (cols - x) / np.maximum(cols - 50, 1)
+
+    seen = np.hypot(cols - 70, rows - 80) <= 20
+    crossing = past & (row_at(52) > 55.5) & (row_at(52) < 103.5)
+    assert np.all(out[crossing & seen] == 1) and np.all(out[crossing & ~seen] == 0)
+    # the line crosses column 52's pixels between x = 52.5 and 51.5: beyond the barrier's rows there
+    beyond = np.minimum(row_at(52.5), row_at(51.5)) > 105.5
+    beyond |= np.maximum(row_at(52.5), row_at(51.5)) < 53.5
+    assert np.all(out[past & beyond] == 0) and np.count_nonzero(past & beyond) > 50
+    assert np.all(out[cols <= 52] == labels[cols <= 52]) and np.all(out[labels == 1] == 1)
+    assert record["blocked_pixels"] > record["moved_pixels"] == np.count_nonzero(crossing & seen) > 200
+
+
+def test_a_long_barrier_is_carried_on_along_its_valleys_floor_and_a_branch_is_not():
+    """A barrier on x = 40 over rows 20-59 of 80 whose valley's floor (ridge pixels over
+    FOLD_FOLLOW sigma) runs on to row 0 straight, and towards row 79 but drifting one column
+    every row: carried to row 0 along x = 40, and below only while the floor stays within
+    FOLLOW_WIDTH of the line. A branch off it (row 40, x = 41-50) over floor running on to
+    the right is not carried on; a short barrier (under LONG_SPACINGS spacings) is not either."""
+    from ilt.isf.folds import FOLD_FOLLOW, FOLLOW_WIDTH, _follow
+
+    barriers = np.zeros((80, 100), bool)
+    barriers[20:60, 40] = True
+    barriers[40, 41:51] = True
+    barriers[30:36, 80] = True                            # 6 px: short at a spacing of 10
+    floor = barriers.copy()
+    floor[:20, 40] = True
+    floor[60:80, 40] = False
+    for k, row in enumerate(range(60, 80)):
+        floor[row, 40 + k + 1] = True                      # a drifting floor, 45 degrees
+    floor[40, 51:70] = True
+    floor[:30, 80] = floor[36:, 80] = True
+    z = np.where(floor, FOLD_FOLLOW + 0.5, 0.0)
+    before = barriers.copy()
+    _follow(barriers, floor, z, extent=20.0, steps=60)
+    added = barriers & ~before
+    assert np.all(added[:20, 40]) and np.all(~added[:, 51:])  # the line to the edge; the branch and short one not
+    rows, cols = np.nonzero(added[60:])
+    assert rows.size and np.all(np.abs(cols - 40) <= FOLLOW_WIDTH)
+    assert added.sum() == 20 + rows.size
+
+
 def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     """Noise-free frames: nothing to judge a valley against, the cells as without the
     option and the manifest says why. Noisy frames: the same lit pixels, the moved ones

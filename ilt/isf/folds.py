@@ -21,6 +21,12 @@ gives each pixel to the nearest spot in its own region of the lit mask that the 
 leave (4-connected), except each spot's own disc, which stays its own (a barrier between
 a spot 2 px from a fold and its own pixels gave them to the neighbour); a spot on a barrier
 pixel is in the region of the nearest pixel that is not one.
+
+A fold's valley fades towards the light's edge, where fewer far beams light it, so its
+barrier may stop short of that edge and enclose nothing. So each barrier that spans
+:data:`LONG_SPACINGS` spacings has its two ends carried on along the valley's floor
+(:func:`_follow`), and such a barrier also ends the cells whose pixels' straight lines to
+their spots cross it (:func:`_line_of_sight`).
 """
 
 from __future__ import annotations

@@ -49,6 +49,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -290,8 +291,11 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
         results[f"refine +{k}"] = (len(base_beams) + len(chosen),
                                    errors(case, grown(f"refine-{k}", base_beams + chosen), mask))
         draws_err = []
+        # the draws from the scene and K alone: the same beams whether or not the noisy frames
+        # were made in this run (making them takes from ``rng``)
+        pick = np.random.default_rng([zlib.crc32(scene.encode()), k])
         for d in range(draws):
-            extra = rng.choice(unused, size=k, replace=False).tolist()
+            extra = pick.choice(unused, size=k, replace=False).tolist()
             draws_err.append(errors(case, grown(f"random-{k}-{d}", base_beams + extra), mask))
         if draws_err:
             results[f"random +{k} (median of {draws})"] = (len(base_beams) + k, np.median(draws_err, axis=0))

@@ -25,7 +25,7 @@ from .errors import CameraError
 
 log = logging.getLogger(__name__)
 
-CAMERA_FAULTS = ("timeout", "error", "unplug", "enospc")
+CAMERA_FAULTS = ("timeout", "error", "unplug", "enospc", "hang")
 
 
 class SimCamera:
@@ -34,14 +34,17 @@ class SimCamera:
     ``render()`` returns the (H, W) radiance the camera sees now (electrons per second at
     f/1 per photosite: the beam where the pan-tilt unit really points, or darkness with
     the laser off); ``write_raw(path, radiance, exposure_time, f_number, rng)`` exposes
-    and writes one DNG. Faults ``KIND@N`` fire on the N-th shot (counted from 1).
+    and writes one DNG. Faults ``KIND@N`` fire on the N-th shot (counted from 1); ``hang``
+    answers nothing for ``timeout`` seconds and then fails as ``timeout`` does (a camera
+    stuck mid-download: a moment to interrupt the capture at).
     """
 
     suffix = ".dng"
 
     def __init__(self, render: Callable[[], np.ndarray], write_raw: Callable, model: str,
-                 seed: int = 0, faults=()):
+                 seed: int = 0, faults=(), timeout: float = 30.0):
         self.render, self.write_raw, self.model, self.seed = render, write_raw, model, seed
+        self.timeout = timeout
         self.faults = {}
         for spec in faults:
             m = re.fullmatch(r"\s*(\w+)@(\d+)\s*", spec)
@@ -60,7 +63,9 @@ class SimCamera:
         if self.unplugged or fault == "unplug":
             self.unplugged = True
             raise CameraError(f"camera {self.model} disconnected (USB)")
-        if fault == "timeout":
+        if fault == "hang":
+            time.sleep(self.timeout)
+        if fault in ("timeout", "hang"):
             raise CameraError(f"camera {self.model}: no image within the time limit ({key})")
         if fault == "error":
             raise CameraError(f"camera {self.model}: capture failed ({key})")
@@ -118,7 +123,7 @@ def make_sim_camera(cfg, plan_steps: np.ndarray, layout: tuple[int, int],
     def write_raw(path, radiance, exposure_time, f_number, rng):
         write_dng(path, radiance, exposure_time, f_number, sensor, rng)
 
-    return SimCamera(render, write_raw, f"{sensor.make} {sensor.model}", cfg.seed, cfg.faults)
+    return SimCamera(render, write_raw, f"{sensor.make} {sensor.model}", cfg.seed, cfg.faults, cfg.timeout)
 
 
 def _layout_position(steps: np.ndarray, layout) -> Callable[[np.ndarray], np.ndarray] | None:

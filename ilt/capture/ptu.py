@@ -76,12 +76,21 @@ class SerialLine:
             raise Disconnected(f"{self.what} on {self.port} disconnected ({exc})") from None
         return data.decode("ascii", "replace")
 
+    def _waiting(self) -> int:
+        """How many bytes the device has sent that are not read yet (0 on a closed line)."""
+        try:
+            return self._ser.in_waiting
+        except (serial.SerialException, OSError) as exc:
+            raise Disconnected(f"{self.what} on {self.port} disconnected ({exc})") from None
+
     def drain(self, quiet: float = 0.0) -> list[str]:
         """Read what the device sent unasked (banner, late replies, limit notices) until
         it has been quiet for ``quiet`` seconds; return its lines."""
         lines = []
         last = time.monotonic()
         while True:
+            if not quiet and not self._waiting():
+                break                      # nothing sent unasked: no read to wait out its timeout
             chunk = self._receive()
             if chunk:
                 self._buf += chunk

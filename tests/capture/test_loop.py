@@ -109,7 +109,9 @@ def test_fault_then_resume_equals_uninterrupted(fault, reference, tmp_path):
 
 def test_sigkill_mid_bracket_then_resume(reference, tmp_path):
     cfg_path = tmp_path / "rig.toml"
-    cfg_path.write_text(toml_text(ptu={"settle": 0.2}))
+    # beam 2's shots are 9-12 (3 exposures and a dark): the camera hangs at its third, so the
+    # kill lands mid-bracket however fast the rest runs (it would wait the camera's 30 s timeout)
+    cfg_path.write_text(toml_text(camera={"faults": ["hang@11"]}))
     out = tmp_path / "c"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen([sys.executable, "-m", "ilt", "-q", "capture", str(cfg_path), "-o", str(out)],

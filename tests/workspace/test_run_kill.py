@@ -128,7 +128,9 @@ def env(tmp_path):
 
 def test_sigkill_at_ten_moments_loses_nothing_and_resumes_identically(tmp_path, env):
     config = tmp_path / "small.toml"
-    config.write_text(SMALL_RIG)
+    # a settle of 0.05 s a beam (a real rig's is 0.5 s or more): the capture's kills, a fixed
+    # delay after a file appears, land inside it however fast the emulated unit answers
+    config.write_text(SMALL_RIG.replace("settle = 0.0", "settle = 0.05"))
     reference = tmp_path / "reference"
     proc = _ilt("run", config, "-w", reference, "--json", env=env)
     out, err = proc.communicate()

@@ -44,8 +44,9 @@ FOLD_LOW = 3.0
 SUM_OUTLIER_SHARE = 1e-3
 #: the Gaussian's sigma as a share of the spot spacing, and its bounds (px)
 SMOOTH_SHARE, SMOOTH_MIN, SMOOTH_MAX = 0.25, 2.0, 8.0
-#: a long barrier's ends carried on along its valley's floor where that is this many sigmas
-#: above the noise, up to this many spot spacings and within this many px of its axis (:func:`_follow`)
+#: a long barrier's ends carried on along its valley's floor where that is this many
+#: sigmas above the noise, up to this many spot spacings and within this many px of its
+#: axis (:func:`_follow`)
 FOLD_FOLLOW, FOLLOW_SPACINGS, FOLLOW_WIDTH = 1.5, 4.0, 1.5
 #: a barrier that encloses nothing still ends the cells whose lines to their spots cross
 #: it, if it spans this many spot spacings (noise's stray ridges span under 1.6)
@@ -178,7 +179,8 @@ def valley_barriers(light: np.ndarray, count: np.ndarray, noise, lit: np.ndarray
     keep[np.unique(regions[strong])] = True
     keep[0] = False
     barriers = keep[regions]
-    _follow(barriers, ridge & lit & (z > FOLD_FOLLOW), z, LONG_SPACINGS * spacing, int(np.ceil(FOLLOW_SPACINGS * spacing)))
+    _follow(barriers, ridge & lit & (z > FOLD_FOLLOW), z, LONG_SPACINGS * spacing,
+            int(np.ceil(FOLLOW_SPACINGS * spacing)))
     return barriers
 
 
@@ -186,15 +188,16 @@ def _follow(barriers: np.ndarray, floor: np.ndarray, z: np.ndarray, extent: floa
     """The two ends of each barrier that spans ``extent`` px (its pixels farthest along its
     principal axis) carried on (in place) along the valley's ``floor`` pixels (its ridge,
     over :data:`FOLD_FOLLOW` sigma, lit): a step to the one of the pixels ahead (within 45
-    degrees of the axis, outwards, and near it) that is on the floor, the highest ``z`` of them, while
-    one is, up to ``steps``, ending where it meets another barrier pixel. A fold's valley
-    fades towards the light's edge, where fewer far beams light it, and its barrier stops
-    short of that edge, enclosing nothing; the floor still runs on there in a line, where
-    noise's ridges do not. The steps stay within :data:`FOLLOW_WIDTH` px of the axis through
-    the end (the highest ridge pixel of a faint valley drifts with its noise: a step at 45
-    degrees each row carried the textured M's fold 5 columns into the facet it faces). (A branch off the line is not carried on: ahead of its end the
-    floor is the valley's shoulder, ridges of noise, and a branch carried across a cell
-    gave that cell's far side to spots two cells away.)"""
+    degrees of the axis, outwards, and within :data:`FOLLOW_WIDTH` px of the axis through
+    the end) that is on the floor, the highest ``z`` of them, while one is, up to ``steps``,
+    ending where it meets another barrier pixel. A fold's valley fades towards the light's
+    edge, where fewer far beams light it, and its barrier stops short of that edge,
+    enclosing nothing; the floor still runs on there in a line, where noise's ridges do not.
+    (The highest ridge pixel of a faint valley drifts with its noise: a step at 45 degrees
+    each row carried the textured M's fold 5 columns into the facet it faces. A branch off
+    the line is not carried on: ahead of its end the floor is the valley's shoulder, ridges
+    of noise, and a branch carried across a cell gave that cell's far side to spots two
+    cells away.)"""
     from scipy.ndimage import find_objects, label
 
     height, width = barriers.shape
@@ -211,10 +214,13 @@ def _follow(barriers: np.ndarray, floor: np.ndarray, z: np.ndarray, extent: floa
             r, c = start = int(rows[end]), int(cols[end])
             ahead = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)
                      if (dr or dc) and (dr * direction[0] + dc * direction[1]) / np.hypot(dr, dc) > 0.7]
+            def near_axis(p):
+                return abs((p[0] - start[0]) * direction[1] - (p[1] - start[1]) * direction[0]) <= FOLLOW_WIDTH
+
             for _ in range(steps):
                 options = [(r + dr, c + dc) for dr, dc in ahead
                            if 0 <= r + dr < height and 0 <= c + dc < width and floor[r + dr, c + dc]
-                           and abs((r + dr - start[0]) * direction[1] - (c + dc - start[1]) * direction[0]) <= FOLLOW_WIDTH]
+                           and near_axis((r + dr, c + dc))]
                 if not options:
                     break
                 previous = (r, c)

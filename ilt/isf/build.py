@@ -57,6 +57,7 @@ from ilt.isf.noise import (
     EntryNoise,
     cell_variance,
     fit_frame_noise,
+    light_share_variance,
     write_noise,
 )
 from ilt.isf.spill import SPILL_FILE, spill_matrix, spot_spill, spot_windows
@@ -366,6 +367,21 @@ def _connected(weak: np.ndarray, strong: np.ndarray) -> np.ndarray:
     return np.isin(regions, hit[hit > 0])
 
 
+def _spot_cells_variance(variance: np.ndarray, block: np.ndarray, m: int, done: int, share: float) -> np.ndarray:
+    """``variance`` (m, b) of the columns ``done`` ... with each column's own row (its spot's
+    cell, T's diagonal) at least ``share`` times that cell's sum of squared pixels (the
+    block's last m rows, with a fine fit): a copy, or ``variance`` itself when ``share`` is 0."""
+    if not share > 0:
+        return variance
+    b = variance.shape[1]
+    rows = done + np.arange(b)
+    inside = rows < m
+    out = variance.copy()
+    cols = np.flatnonzero(inside)
+    out[rows[inside], cols] = np.maximum(out[rows[inside], cols], share * block[-m:][rows[inside], cols])
+    return out
+
+
 def _column_chunk(beams, files, shape, sampler, m, scratch=None, degree=None, spill=None, outliers=None):
     """Worker: one column of raw T per frame, (m, len(beams)) float64, and below it, with
     a fine ``degree``, the frame's (K m) raw fine-operator coefficients (:mod:`ilt.isf.fine`)
@@ -610,6 +626,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                 np.lib.format.open_memmap(tmp / FINE_DIR / COEFFICIENTS_FILE, mode="w+", dtype=np.float32,
                                           shape=(terms, m, m)),
                 CellGeometry.from_labels(labels, m), fine_degree, noise_aware=noise is not None)
+        # noise that is a share of each pixel's light (a path tracer's): each spot's own cell
+        # gets its variance from its pixels' squares, which the fine fit's pass sums
+        share = light_share_variance(noise) if noise is not None and fine_degree else 0.0
         entry_noise = None if noise is None else EntryNoise(
             np.lib.format.open_memmap(tmp / T_VAR_FILE, mode="w+", dtype=np.float32, shape=(m, m)))
         area = None if labels is None else np.bincount(labels[labels >= 0], minlength=m).astype(np.float64)
@@ -632,7 +651,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                 variance = None
                 if entry_noise is not None:
                     variance = cell_variance(noise, raw, area)
-                    entry_noise.add(done, variance, norms)
+                    entry_noise.add(done, _spot_cells_variance(variance, block, m, done, share), norms)
                 if accumulator is not None:
                     accumulator.add(done, block[m:-m].reshape(terms, m, b), raw, block[-m:], norms, variance)
                 done += b

@@ -186,6 +186,29 @@ def _noise_without_negatives(levels: np.ndarray, variances: np.ndarray, parts, f
     return narrow > 0 and wide / narrow < MAX_WIDE_RATIO
 
 
+#: the knots' variance grows at least as the level to this power for the noise to be read
+#: as a share of each pixel's light (a path tracer's Monte Carlo noise: 2; photon noise: 1)
+SHARE_EXPONENT = 1.5
+
+
+def light_share_variance(noise: FrameNoise) -> float:
+    """Var[pixel] / level^2 when the frames' noise is a share of each pixel's light (the
+    log-log slope of the upper half of the knots' variances at least
+    :data:`SHARE_EXPONENT`: the median ratio there), else 0 (photon and read noise). A
+    spot's own cell then has the variance ``share * sum of its pixels' squares``, where
+    :func:`cell_variance`, each pixel at the cell's mean level and the curve carried on as
+    photon noise's line past the knots, put a spot's cell 60x low (docs/fullres.md)."""
+    x, v = np.asarray(noise.levels), np.asarray(noise.variances)
+    upper = slice(x.size // 2, None)
+    use = (x[upper] > 0) & (v[upper] > 0)
+    if np.count_nonzero(use) < 3:
+        return 0.0
+    lx, lv = np.log(x[upper][use]), np.log(v[upper][use])
+    if np.ptp(lx) <= 0 or np.polyfit(lx, lv, 1)[0] < SHARE_EXPONENT:
+        return 0.0
+    return float(np.median(v[upper][use] / x[upper][use] ** 2))
+
+
 def cell_variance(noise: FrameNoise, raw: np.ndarray, area: np.ndarray) -> np.ndarray:
     """(m, b) variance of raw cell sums ``raw`` over cells of ``area`` pixels: each pixel at
     its cell's mean level, ``n v(raw / n)``. The curve is convex, so this is the sum of

@@ -78,6 +78,20 @@ def test_noise_that_never_goes_below_zero_is_read_too(gain):
     assert fit_frame_noise(textured, spots) is None
 
 
+def test_noise_that_is_a_share_of_the_light_is_told_from_photon_noise():
+    """A path tracer's Monte Carlo noise (each pixel times Gamma(16, 1/16): a variance of
+    1/16 of its level squared at every level) is read as a share of the light, within 25%;
+    photon noise, with or without read noise, is not (0: its cells' variance as before)."""
+    from ilt.isf.noise import light_share_variance
+
+    rng = np.random.default_rng(4)
+    clean, spots = _frames(rng)
+    share = light_share_variance(fit_frame_noise([f * rng.gamma(16.0, 1.0 / 16.0, f.shape) for f in clean], spots))
+    assert share == pytest.approx(1.0 / 16.0, rel=0.25)
+    for read in (READ_E, 0.0):
+        assert light_share_variance(fit_frame_noise([_noisy(f, 0.5, rng, read) for f in clean], spots)) == 0.0
+
+
 def test_a_brackets_steps_are_followed():
     """A merged bracket's bright pixels come from a shorter exposure: their variance per
     unit of light is 8x the dim ones' above X = 150. The curve follows both (a line
@@ -187,3 +201,17 @@ def test_the_fine_fit_tells_a_slope_from_noise():
     assert unknown.finish()[1] < MIN_EXPLAINED
     clean = _two_cells(rng, slope=0.3, pixel_sigma=0.0).finish()
     assert clean[1] == pytest.approx(1.0)
+
+
+def test_each_spots_own_cell_takes_its_pixels_squares_when_the_noise_is_a_share():
+    """build-isf's T_var: columns 1-2 of m = 3 (a block from column 1): their own rows
+    (1 and 2, T's diagonal) are at least share x their cells' sums of squared pixels (the
+    block's last m rows); the other entries and a share of 0 leave the variance as it was."""
+    from ilt.isf.build import _spot_cells_variance
+
+    variance = np.full((3, 2), 0.5)
+    block = np.vstack([np.ones((3, 2)), np.arange(6.0).reshape(3, 2) * 10])   # raw rows, then squares
+    out = _spot_cells_variance(variance, block, 3, 1, 0.1)
+    assert out[1, 0] == pytest.approx(0.1 * 20.0) and out[2, 1] == pytest.approx(0.1 * 50.0)
+    assert out[0, 0] == out[0, 1] == out[1, 1] == out[2, 0] == 0.5
+    assert _spot_cells_variance(variance, block, 3, 1, 0.0) is variance

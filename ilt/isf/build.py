@@ -370,7 +370,9 @@ def _connected(weak: np.ndarray, strong: np.ndarray) -> np.ndarray:
 def _spot_cells_variance(variance: np.ndarray, block: np.ndarray, m: int, done: int, share: float) -> np.ndarray:
     """``variance`` (m, b) of the columns ``done`` ... with each column's own row (its spot's
     cell, T's diagonal) at least ``share`` times that cell's sum of squared pixels (the
-    block's last m rows, with a fine fit): a copy, or ``variance`` itself when ``share`` is 0."""
+    block's last m rows, with a fine fit; a noisy pixel's square is (1 + share) times its
+    light's on average, so the sum is divided by that): a copy, or ``variance`` itself when
+    ``share`` is 0."""
     if not share > 0:
         return variance
     b = variance.shape[1]
@@ -378,7 +380,8 @@ def _spot_cells_variance(variance: np.ndarray, block: np.ndarray, m: int, done: 
     inside = rows < m
     out = variance.copy()
     cols = np.flatnonzero(inside)
-    out[rows[inside], cols] = np.maximum(out[rows[inside], cols], share * block[-m:][rows[inside], cols])
+    squares = block[-m:][rows[inside], cols] / (1.0 + share)
+    out[rows[inside], cols] = np.maximum(out[rows[inside], cols], share * squares)
     return out
 
 

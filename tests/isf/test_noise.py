@@ -206,12 +206,13 @@ def test_the_fine_fit_tells_a_slope_from_noise():
 def test_each_spots_own_cell_takes_its_pixels_squares_when_the_noise_is_a_share():
     """build-isf's T_var: columns 1-2 of m = 3 (a block from column 1): their own rows
     (1 and 2, T's diagonal) are at least share x their cells' sums of squared pixels (the
-    block's last m rows); the other entries and a share of 0 leave the variance as it was."""
+    block's last m rows) over 1 + share (a noisy square's mean excess); the other entries
+    and a share of 0 leave the variance as it was."""
     from ilt.isf.build import _spot_cells_variance
 
     variance = np.full((3, 2), 0.5)
     block = np.vstack([np.ones((3, 2)), np.arange(6.0).reshape(3, 2) * 10])   # raw rows, then squares
     out = _spot_cells_variance(variance, block, 3, 1, 0.1)
-    assert out[1, 0] == pytest.approx(0.1 * 20.0) and out[2, 1] == pytest.approx(0.1 * 50.0)
+    assert out[1, 0] == pytest.approx(0.1 * 20.0 / 1.1) and out[2, 1] == pytest.approx(0.1 * 50.0 / 1.1)
     assert out[0, 0] == out[0, 1] == out[1, 1] == out[2, 0] == 0.5
     assert _spot_cells_variance(variance, block, 3, 1, 0.0) is variance

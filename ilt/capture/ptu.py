@@ -77,7 +77,8 @@ class SerialLine:
         return data.decode("ascii", "replace")
 
     def _waiting(self) -> int:
-        """How many bytes the device has sent that are not read yet (0 on a closed line)."""
+        """How many bytes the device has sent that are not read yet; Disconnected when the
+        line is gone."""
         try:
             return self._ser.in_waiting
         except (serial.SerialException, OSError) as exc:

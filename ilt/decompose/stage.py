@@ -836,8 +836,8 @@ def _debiased_diagonal(T, variance) -> tuple[np.ndarray, dict | None]:
         return T, None
     d = np.asarray(np.diagonal(T), dtype=np.float64)
     var = np.maximum(np.asarray(np.diagonal(variance), dtype=np.float64), 0.0)
-    raise_by = np.where(d > 0, var / np.where(d > 0, d, 1.0), 0.0)
-    relative = np.where(d > 0, raise_by / np.where(d > 0, d, 1.0), 0.0)
+    positive = np.where(d > 0, d, np.inf)                # a diagonal entry of 0 or less: not raised
+    raise_by, relative = var / positive, var / positive**2
     if not np.any(relative > 1e-4):
         return T, None
     out = np.array(T, dtype=np.float64)

@@ -375,13 +375,10 @@ def _spot_cells_variance(variance: np.ndarray, block: np.ndarray, m: int, done: 
     ``share`` is 0."""
     if not share > 0:
         return variance
-    b = variance.shape[1]
-    rows = done + np.arange(b)
-    inside = rows < m
+    cols = np.arange(variance.shape[1])
+    rows = done + cols                                   # each column's own cell: T's diagonal
     out = variance.copy()
-    cols = np.flatnonzero(inside)
-    squares = block[-m:][rows[inside], cols] / (1.0 + share)
-    out[rows[inside], cols] = np.maximum(out[rows[inside], cols], share * squares)
+    out[rows, cols] = np.maximum(out[rows, cols], share * block[-m:][rows, cols] / (1.0 + share))
     return out
 
 

@@ -198,12 +198,10 @@ def _follow(barriers: np.ndarray, floor: np.ndarray, z: np.ndarray, extent: floa
     the line is not carried on: ahead of its end the floor is the valley's shoulder, ridges
     of noise, and a branch carried across a cell gave that cell's far side to spots two
     cells away.)"""
-    from scipy.ndimage import find_objects, label
-
     height, width = barriers.shape
-    lines, _ = label(barriers, np.ones((3, 3), bool))
-    for i, box in enumerate(find_objects(lines), start=1):
-        if max(box[0].stop - box[0].start, box[1].stop - box[1].start) < extent:
+    lines, boxes, long = _lines(barriers, extent)
+    for i, box in enumerate(boxes, start=1):
+        if not long[i]:
             continue
         rows, cols = np.nonzero(lines[box] == i)
         rows, cols = rows + box[0].start, cols + box[1].start
@@ -322,16 +320,24 @@ def _long(barriers: np.ndarray, extent: float, edge: int) -> np.ndarray:
     """The barriers' pixels farther than ``edge`` px from the frame's edge (where the
     filters' mirror makes valleys of their own) whose 8-connected line spans at least
     ``extent`` px along x or y (noise's ridges are short)."""
-    from scipy.ndimage import find_objects, label
-
     inner = np.zeros_like(barriers)
     inner[edge:barriers.shape[0] - edge, edge:barriers.shape[1] - edge] = \
         barriers[edge:barriers.shape[0] - edge, edge:barriers.shape[1] - edge]
-    lines, _ = label(inner, np.ones((3, 3), bool))
-    keep = np.zeros(lines.max() + 1, bool)
-    for i, box in enumerate(find_objects(lines), start=1):
-        keep[i] = max(box[0].stop - box[0].start, box[1].stop - box[1].start) >= extent
-    return keep[lines]
+    lines, _, long = _lines(inner, extent)
+    return long[lines]
+
+
+def _lines(barriers: np.ndarray, extent: float):
+    """The barriers' 8-connected lines: their labels (H, W), bounding boxes (one a line) and
+    (lines + 1,) bool, whether each spans at least ``extent`` px along x or y (index 0: none)."""
+    from scipy.ndimage import find_objects, label
+
+    lines, count = label(barriers, np.ones((3, 3), bool))
+    boxes = find_objects(lines)
+    long = np.zeros(count + 1, bool)
+    for i, box in enumerate(boxes, start=1):
+        long[i] = max(box[0].stop - box[0].start, box[1].stop - box[1].start) >= extent
+    return lines, boxes, long
 
 
 def _line_of_sight(out: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, regions: np.ndarray,

@@ -49,7 +49,7 @@ from ilt.transport.operators import (
     bounce_images,
     cancellation_operator,
 )
-from ilt.transport.regularise import regularise_isf
+from ilt.transport.regularise import diagonal_raise, raise_diagonal, regularise_isf
 from ilt.transport.scan import TransportError, scan_isf
 from ilt.transport.solvers import build_operator, choose_solver, estimate_noise
 
@@ -537,7 +537,7 @@ def decompose(
         spilled = _unmixing(isf, spill)
         T_op = isf.T if spilled is None else _unmixed_T(isf, spilled, cache_dir, stack)
         variance = _entry_variance(isf) if noise_source != "given" else None
-        T_op, diagonal = _debiased_diagonal(T_op, variance)
+        T_op, diagonal = _debiased_diagonal(T_op, variance, spilled is not None, cache_dir, stack)
         try:
             op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
                                         isf.samples,
@@ -822,28 +822,23 @@ def auto_regularise(m: int, noise: float | None, neighbours: bool) -> str | None
     return None
 
 
-def _debiased_diagonal(T, variance) -> tuple[np.ndarray, dict | None]:
-    """T with each diagonal entry raised by its variance over itself (``variance``: each
-    unit-column entry's, build-isf's ``T_var.npy``), and a record; T itself and None when
-    that is nothing (no variance, or under 1e-4 of every entry). A noisy diagonal biases the
-    inverse: E[1 / (d + e)] = (1 + Var[e] / d^2) / d to second order, so each beam's solved
-    light came out high by its diagonal's relative variance, the light it sends its
-    neighbours with it, and bounce 1 low (a path tracer's noise of 16 samples: each spot's
-    cell 10.4% noisy, bounce 1 -1.1% and bounce 3 +3.1% at 768 beams); d + Var[e] / d is the
-    second-order correction of T^-1 (T^-1 - T^-1 M T^-1, M_ik = (T^-1)_ki Var[T_ik], whose
-    off-diagonal terms are products of small entries). docs/fullres.md."""
-    if variance is None:
+def _debiased_diagonal(T, variance, owned: bool, cache_dir, stack: contextlib.ExitStack):
+    """T with each diagonal entry raised by its variance over itself
+    (:func:`~ilt.transport.regularise.diagonal_raise`) and the record; T itself and None when
+    that is nothing. ``owned``: T is this decompose's own copy (the spill's unmixed T), raised
+    in place; a memory-mapped T is copied to a memory map beside the operator cache
+    (``stack`` removes it), as :func:`_unmixed_T` does: T is not held twice in memory."""
+    raise_by, record = diagonal_raise(T, variance)
+    if raise_by is None:
         return T, None
-    d = np.asarray(np.diagonal(T), dtype=np.float64)
-    var = np.maximum(np.asarray(np.diagonal(variance), dtype=np.float64), 0.0)
-    positive = np.where(d > 0, d, np.inf)                # a diagonal entry of 0 or less: not raised
-    raise_by, relative = var / positive, var / positive**2
-    if not np.any(relative > 1e-4):
-        return T, None
-    out = np.array(T, dtype=np.float64)
-    out[np.diag_indices_from(out)] += raise_by
-    return out, {"median_relative_sigma": float(np.median(np.sqrt(relative))),
-                 "max_relative_raise": float(relative.max()), "mean_relative_raise": float(relative.mean())}
+    out = None
+    if owned:
+        out = T
+    elif isinstance(T, np.memmap):
+        scratch = stack.enter_context(tempfile.TemporaryDirectory(
+            prefix="ilt-debiased-", dir=cache_dir if cache_dir and Path(cache_dir).is_dir() else None))
+        out = np.lib.format.open_memmap(Path(scratch) / "T.npy", mode="w+", dtype=np.float64, shape=T.shape)
+    return raise_diagonal(T, raise_by, out), record
 
 
 def _entry_variance(isf) -> np.ndarray | None:

@@ -52,6 +52,8 @@ BIAS_WEIGHT = 3.0
 #: to this many samples, else from PROBES random sign vectors (:func:`choose_width`)
 PROBE_EXACT_M = 1024
 PROBES = 128
+#: T's diagonal is raised (:func:`diagonal_raise`) only where some entry's relative variance is past this
+DIAGONAL_FLOOR = 1e-4
 #: edge sensitivity: the weight of a neighbour pair falls by e for every kappa x the noise's
 #: expected squared distance that their rows' distance exceeds it by
 KAPPA = 0.25
@@ -476,3 +478,43 @@ def bias_variance(T: np.ndarray, layout: tuple[int, int], photos: np.ndarray, tr
             pooled_spread=float(np.sqrt(spread_sq.sum()) / pooled_scale),
             pooled_error=float(np.sqrt(error_sq.sum()) / pooled_scale)))
     return rows
+
+
+def diagonal_raise(T: np.ndarray, variance: np.ndarray | None) -> tuple[np.ndarray | None, dict | None]:
+    """(m,) what to add to T's diagonal, its variance over itself, and a record; (None,
+    None) when that is nothing (no variance, or every entry's relative variance under
+    :data:`DIAGONAL_FLOOR`). ``variance`` (m, m): each unit-column entry's (build-isf's
+    ``T_var.npy``); only its diagonal is read.
+
+    A noisy diagonal biases the inverse: E[1 / (d + e)] = (1 + Var[e] / d^2) / d to second
+    order, so each beam's solved light came out high by its diagonal's relative variance,
+    the light it sends its neighbours with it, and bounce 1 low (a path tracer's noise of 16
+    samples: each spot's cell 10.4% noisy, bounce 1 -1.1% and bounce 3 +3.1% at 768 beams);
+    d + Var[e] / d is the second-order correction of T^-1 (T^-1 - T^-1 M T^-1, M_ik =
+    (T^-1)_ki Var[T_ik], whose off-diagonal terms are products of small entries). Over 20
+    draws of a 4-sample path tracer's noise it lowered the full-resolution errors in 95% of
+    them (docs/fullres.md)."""
+    if variance is None:
+        return None, None
+    d = np.asarray(np.diagonal(T), dtype=np.float64)
+    var = np.maximum(np.asarray(np.diagonal(variance), dtype=np.float64), 0.0)
+    positive = np.where(d > 0, d, np.inf)                # a diagonal entry of 0 or less: not raised
+    raise_by, relative = var / positive, var / positive**2
+    if not np.any(relative > DIAGONAL_FLOOR):
+        return None, None
+    return raise_by, {"median_relative_sigma": float(np.median(np.sqrt(relative))),
+                      "max_relative_raise": float(relative.max()), "mean_relative_raise": float(relative.mean())}
+
+
+def raise_diagonal(T: np.ndarray, raise_by: np.ndarray, out: np.ndarray | None = None,
+                   block: int = 1024) -> np.ndarray:
+    """``T + diag(raise_by)`` into ``out`` (float64, T's shape; T itself to raise it in
+    place), copied a block of columns at a time (a memory-mapped ``out`` holds no m x m
+    temporary); a new array when ``out`` is None."""
+    if out is None:
+        out = np.array(T, dtype=np.float64)
+    elif out is not T:
+        for j0 in range(0, T.shape[1], block):
+            out[:, j0:j0 + block] = T[:, j0:j0 + block]
+    out[np.diag_indices_from(out)] += raise_by
+    return out

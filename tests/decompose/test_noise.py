@@ -4,6 +4,7 @@ covariance is exact), and where the noise of T comes from."""
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -107,9 +108,9 @@ def test_a_noisy_diagonal_biases_bounce_1_low_and_its_variance_takes_that_back()
     over 300 draws bounce 1 comes out low on average (E[1 / (d + e)] > 1 / d: each beam's
     solved light high, and the light its neighbours get from it), by more than its draws'
     own scatter; raising each diagonal entry by its variance over itself
-    (decompose's _debiased_diagonal, with T_var's diagonal) takes at least two thirds of
-    that bias away. Without a variance, or one too small to matter, T is left as it is."""
-    from ilt.decompose.stage import _debiased_diagonal
+    (ilt.transport.regularise.diagonal_raise, with T_var's diagonal) takes at least two
+    thirds of that bias away. Without a variance, or one too small to matter, nothing is raised."""
+    from ilt.transport.regularise import diagonal_raise, raise_diagonal
 
     A, _, T = physical_transport(40, albedo=0.7, seed=3)
     T = unit(T)
@@ -123,12 +124,42 @@ def test_a_noisy_diagonal_biases_bounce_1_low_and_its_variance_takes_that_back()
         noisy = T.copy()
         noisy[np.diag_indices(40)] *= 1.0 + 0.1 * rng.standard_normal(40)
         plain.append(bounce_images(cancellation_operator(noisy), L, 1).bounces[0].sum())
-        fixed, record = _debiased_diagonal(noisy, variance)
+        raise_by, record = diagonal_raise(noisy, variance)
+        fixed = raise_diagonal(noisy, raise_by)
         debiased.append(bounce_images(cancellation_operator(fixed), L, 1).bounces[0].sum())
     bias, left = np.mean(plain) - truth.sum(), np.mean(debiased) - truth.sum()
     assert bias < -3 * np.std(plain) / np.sqrt(300)
     assert abs(left) < abs(bias) / 3
     assert record["median_relative_sigma"] == pytest.approx(0.1, rel=0.15)
-    same, none = _debiased_diagonal(T, None)
-    assert same is T and none is None
-    assert _debiased_diagonal(T, variance * 1e-6)[1] is None
+    assert diagonal_raise(T, None) == (None, None)
+    assert diagonal_raise(T, variance * 1e-6) == (None, None)
+
+
+def test_a_memory_mapped_T_is_raised_into_a_memory_map_of_its_own(tmp_path):
+    """decompose reads T memory-mapped (never held twice): its raised diagonal goes to a
+    memory map in a scratch directory beside the operator cache, gone when the stack
+    closes; T's own file is unchanged; a T the decompose made itself is raised in place."""
+    import contextlib
+
+    from ilt.decompose.stage import _debiased_diagonal
+
+    rng = np.random.default_rng(0)
+    T = np.eye(50) + 0.01 * rng.random((50, 50))
+    np.save(tmp_path / "T.npy", T)
+    variance = np.zeros_like(T)
+    np.fill_diagonal(variance, 0.04)
+    mapped = np.load(tmp_path / "T.npy", mmap_mode="r")
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    with contextlib.ExitStack() as stack:
+        out, record = _debiased_diagonal(mapped, variance, False, cache, stack)
+        assert isinstance(out, np.memmap) and Path(out.filename).parent.parent == cache
+        expected = T + np.diag(0.04 / np.diag(T))
+        np.testing.assert_array_equal(out, expected)
+        assert record["max_relative_raise"] == pytest.approx(0.04 / np.diag(T).min() ** 2)
+    assert list(cache.iterdir()) == []
+    np.testing.assert_array_equal(np.load(tmp_path / "T.npy"), T)
+    own = T.copy()
+    with contextlib.ExitStack() as stack:
+        assert _debiased_diagonal(own, variance, True, None, stack)[0] is own
+    np.testing.assert_array_equal(own, expected)

@@ -56,7 +56,7 @@ def peak_of(hdr: Path) -> float:
 
 
 def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_NOISE_E,
-               samples: float = 0.0) -> None:
+               samples: float = 0.0, direct=None) -> None:
     """dst/hdr: every beam frame of src/hdr with photon and read noise, ``gain``
     photo-electrons per frame unit (see the module doc); ``read_noise`` 0: photon noise
     alone, which never reads below zero (as a path tracer's Monte Carlo noise).
@@ -65,15 +65,21 @@ def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_
     unused): each pixel is its value times Gamma(samples, 1 / samples), a mean of
     ``samples`` independent exponential path weights. Its relative noise, 1 / sqrt(samples),
     is the same at every level (photon noise's falls as the light grows), it never reads
-    below zero, and its upper tail is long."""
+    below zero, and its upper tail is long. ``direct`` (with ``samples``): a function of
+    the beam's index giving its frame's direct light (the laser spot), which is then left
+    noise-free and only the interreflected rest noisy, as a path tracer that samples the
+    light source at every hit (next-event estimation) renders a spotlight's spot."""
     from ilt.io.exr import read_exr, write_exr
 
     dst.mkdir(parents=True)
     frames = sorted(src.glob("beam-*.exr"))
-    for f in frames:
+    for j, f in enumerate(frames):
         image, attributes = read_exr(f)
         x = np.maximum(image.astype(np.float64), 0)
-        if samples > 0:
+        if samples > 0 and direct is not None:
+            spot = np.minimum(direct(j).reshape(image.shape), x)
+            out = spot + (x - spot) * rng.gamma(samples, 1.0 / samples, image.shape)
+        elif samples > 0:
             out = x * rng.gamma(samples, 1.0 / samples, image.shape)
         else:
             out = (rng.poisson(x * gain) + (rng.normal(0, read_noise, image.shape) if read_noise else 0.0)) / gain
@@ -85,16 +91,26 @@ def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_
 
 
 def noisy_frames(case: Path, rng, electrons: float, read_noise: float = READ_NOISE_E,
-                 samples: float = 0.0) -> Path:
+                 samples: float = 0.0, exact_direct: bool = False) -> Path:
     """The frames of ``case/hdr`` a benchmark runs on, made once: with ``samples`` > 0 the
     Monte Carlo copy ``hdr-mcS``; else with ``electrons`` > 0 the photon and read noise copy
     ``hdr-noisy`` (``hdr-noisy-readR`` at another read noise), ``electrons`` at the brightest
-    frame's peak; else ``hdr`` itself (:func:`noisy_copy`)."""
+    frame's peak; else ``hdr`` itself (:func:`noisy_copy`). ``exact_direct`` (with
+    ``samples``): ``hdr-mcS-direct``, the spots noise-free (the scene rendered again from
+    ``case``'s manifest for them)."""
     hdr = case / "hdr"
     if samples > 0:
-        out = case / f"hdr-mc{samples:g}"
+        out = case / f"hdr-mc{samples:g}{'-direct' if exact_direct else ''}"
         if not out.exists():
-            noisy_copy(hdr, out, 1.0, rng, samples=samples)
+            direct = None
+            if exact_direct:
+                from ilt.sim.render import render_scene
+
+                p = json.loads((case / "manifest.json").read_text())["parameters"]
+                scene = render_scene(p["scene"], p["beams"], p["albedo"], p["seed"], p["spot"], p["fine"],
+                                     p["px_per_beam"])
+                direct = scene.spot_image
+            noisy_copy(hdr, out, 1.0, rng, samples=samples, direct=direct)
         return out
     if electrons > 0:
         out = case / ("hdr-noisy" if read_noise == READ_NOISE_E else f"hdr-noisy-read{read_noise:g}")

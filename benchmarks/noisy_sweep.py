@@ -92,7 +92,7 @@ def nested_sets(scene: str, m: int) -> dict[int, list[int]]:
 
 def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None = None,
           keep_covered: bool = False, read_noise: float = coverage_bench.READ_NOISE_E,
-          samples: float = 0.0) -> dict:
+          samples: float = 0.0, exact_direct: bool = False) -> dict:
     m, px, spot = lattice(scene)
     if spot_px is not None:   # the laser's spot, whatever the scan: sigma in full-resolution pixels
         spot = spot_px / px
@@ -102,7 +102,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
         fine = ("--fine", 8) if scene == "occluded" and m > 384 else ()
         refine_bench.run("simulate", scene, "--frames", "--beams", m, "--px-per-beam", px, "--spot", spot,
                          *fine, "-o", case, "--force")
-    hdr = coverage_bench.noisy_frames(case, rng, electrons, read_noise, samples)
+    hdr = coverage_bench.noisy_frames(case, rng, electrons, read_noise, samples, exact_direct)
     where, earlier = {}, None
     for count, beams in sorted(nested_sets(scene, m).items()):
         # --keep-covered: each scan built with the sparser scan's coverage (ilt build-isf --keep-covered)
@@ -121,7 +121,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
                        "frame_coverage": float(manifest["coverage"]["fraction"]),
                        "m_kept": int(manifest["m"])}
     return {"scene": scene, "lattice": m, "px_per_beam": px, "spot": spot, "electrons": electrons,
-            "read_noise": read_noise, "samples": samples,
+            "read_noise": read_noise, "samples": samples, "exact_direct": exact_direct,
             "keep_covered": keep_covered,
             "base_pixels": int(mask.sum()), "scans": rows}
 
@@ -159,6 +159,8 @@ def table(result: dict, per_beam: float) -> str:
     noise = f"{result['electrons']:g} e-" + ("" if result.get("read_noise", 3.0) else ", no read noise")
     if result.get("samples"):
         noise = f"Monte Carlo noise of {result['samples']:g} samples (no photon or read noise)"
+        if result.get("exact_direct"):
+            noise = noise[:-1] + "; the spots' direct light noise-free)"
     lines = [(f"### {result['scene']}: lattice {result['lattice']} ({result['px_per_beam']:g} px per beam), "
               f"{noise}{kept}, over the {result['base_pixels']} pixels of the sparsest scan"), "",
              ("| m | m kept | rig hours | covered | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
@@ -215,6 +217,9 @@ def main() -> None:
     ap.add_argument("--samples", type=float, default=0.0,
                     help="a path tracer's Monte Carlo noise instead of photon and read noise: each pixel times "
                          "Gamma(S, 1/S), relative noise 1/sqrt(S) at every level (bench_coverage.noisy_copy)")
+    ap.add_argument("--exact-direct", action="store_true",
+                    help="with --samples: the laser spots noise-free, only the interreflected light noisy (a path "
+                         "tracer that samples a spotlight at every hit; frames hdr-mcS-direct)")
     ap.add_argument("--keep-covered", action="store_true",
                     help="build each scan with 'ilt build-isf --keep-covered' the next sparser scan's ISF (a lab "
                          "that rescans denser, or ilt run's refine passes)")
@@ -239,7 +244,7 @@ def main() -> None:
     results = []
     for scene in filter(None, args.scenes.split(",")):
         results.append(sweep(args.scratch / f"e{args.electrons:g}", scene, args.electrons, rng, args.spot_px,
-                             args.keep_covered, args.read_noise, args.samples))
+                             args.keep_covered, args.read_noise, args.samples, args.exact_direct))
         print("\n" + table(results[-1], per_beam), flush=True)
     if args.plot:
         plot(results, per_beam, args.plot)

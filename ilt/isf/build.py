@@ -43,6 +43,7 @@ from ilt.isf.fine import (
     FINE_DIR,
     CellGeometry,
     FineAccumulator,
+    adjacent_cells,
     basis_terms,
     fit_operator,
     frames_inputs,
@@ -55,6 +56,7 @@ from ilt.isf.noise import (
     SAMPLE_FRAMES,
     T_VAR_FILE,
     EntryNoise,
+    cap_spot_cells,
     cell_variance,
     fit_frame_noise,
     light_share_variance,
@@ -628,7 +630,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                 CellGeometry.from_labels(labels, m), fine_degree, noise_aware=noise is not None)
         # noise that is a share of each pixel's light (a path tracer's): each spot's own cell
         # gets its variance from its pixels' squares, which the fine fit's pass sums
-        share = light_share_variance(noise) if noise is not None and fine_degree else 0.0
+        light_share = light_share_variance(noise) if noise is not None and fine_degree else 0.0
         entry_noise = None if noise is None else EntryNoise(
             np.lib.format.open_memmap(tmp / T_VAR_FILE, mode="w+", dtype=np.float32, shape=(m, m)))
         area = None if labels is None else np.bincount(labels[labels >= 0], minlength=m).astype(np.float64)
@@ -651,7 +653,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                 variance = None
                 if entry_noise is not None:
                     variance = cell_variance(noise, raw, area)
-                    entry_noise.add(done, _spot_cells_variance(variance, block, m, done, share), norms)
+                    entry_noise.add(done, _spot_cells_variance(variance, block, m, done, light_share), norms)
                 if accumulator is not None:
                     accumulator.add(done, block[m:-m].reshape(terms, m, b), raw, block[-m:], norms, variance)
                 done += b
@@ -674,9 +676,13 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         if labels is not None:
             fields["coverage"] = {"fraction": float(np.mean(labels >= 0)), "lit": lit_info}
         if entry_noise is not None:
+            # the spots' cells as noisy as the share says, or as T's diagonal scatters by if that is less
+            spot_cells = cap_spot_cells(entry_noise.out, T, adjacent_cells(labels)) if light_share and labels is not None \
+                else None
             entry_noise.out.flush()
             del entry_noise.out
-            write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} of the beam frames, spread over the scan")
+            write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} of the beam frames, spread over the scan",
+                        spot_cells)
             fields["noise"] = {"entry_sigma": entry_noise.entry_sigma, "frames": noise.frames}
         if fold_cells and labels is not None:
             fields["folds"] = folds

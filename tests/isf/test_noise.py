@@ -216,3 +216,45 @@ def test_each_spots_own_cell_takes_its_pixels_squares_when_the_noise_is_a_share(
     assert out[1, 0] == pytest.approx(0.1 * 20.0 / 1.1) and out[2, 1] == pytest.approx(0.1 * 50.0 / 1.1)
     assert out[0, 0] == out[0, 1] == out[1, 1] == out[2, 0] == 0.5
     assert _spot_cells_variance(variance, block, 3, 1, 0.0) is variance
+
+
+def _chain(m: int = 200, sigma: float = 0.0, seed: int = 0):
+    """A line of m cells, each beam's indirect light a smooth kernel of the distance (its
+    q, indirect over own, changes slowly along the line), the diagonal ``sigma`` noisy;
+    the neighbour pairs of the line."""
+    i = np.arange(m)
+    T = 0.02 * np.exp(-np.abs(i[:, None] - i[None, :]) / 15.0) * (1.0 + 0.3 * np.sin(i / 30.0))[:, None]
+    T[np.diag_indices(m)] = 1.0 + sigma * np.random.default_rng(seed).standard_normal(m)
+    return T, np.column_stack([i[:-1], i[1:]])
+
+
+def test_the_diagonals_scatter_is_its_noise_and_caps_a_share_it_does_not_have():
+    """diagonal_scatter reads the diagonal's relative noise off T (each beam's indirect over
+    own light against its neighbours'): 10% noise reads 10% (within 20%), a noise-free
+    diagonal under 0.5% (the chain's own curvature). cap_spot_cells leaves T_var's diagonal
+    when the share said 10% and T scatters by 10%, and scales it down to the scatter (taken
+    2 standard errors high) when T's diagonal is noise-free (a path tracer's spot sampled at
+    every hit); T_var's other entries untouched; nothing to measure without neighbours."""
+    from ilt.isf.noise import MEDIAN_VARIANCE_SE, cap_spot_cells, diagonal_scatter
+
+    noisy, pairs = _chain(sigma=0.1)
+    sigma, beams = diagonal_scatter(noisy, pairs)
+    assert beams == 198 and sigma == pytest.approx(0.1, rel=0.2)
+    clean, _ = _chain()
+    assert diagonal_scatter(clean, pairs)[0] < 0.005
+    for T, kept in ((noisy, True), (clean, False)):
+        variance = np.full(T.shape, 1e-6)
+        variance[np.diag_indices(200)] = (0.1 * np.diag(T)) ** 2
+        before = variance.copy()
+        record = cap_spot_cells(variance, T, pairs)
+        assert record["predicted_sigma"] == pytest.approx(0.1)
+        off = ~np.eye(200, dtype=bool)
+        np.testing.assert_array_equal(variance[off], before[off])
+        if kept:
+            assert record["scaled_by"] > 0.6
+        else:
+            scatter = diagonal_scatter(T, pairs)[0]
+            expected = scatter**2 * (1 + 2 * MEDIAN_VARIANCE_SE / np.sqrt(198)) / 0.01
+            assert record["scaled_by"] == pytest.approx(expected) and record["scaled_by"] < 0.01
+            np.testing.assert_allclose(np.diag(variance), np.diag(before) * expected)
+    assert cap_spot_cells(np.zeros((200, 200)), clean, np.empty((0, 2), int)) is None

@@ -679,6 +679,11 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             # the spots' cells as noisy as the share says, or as T's diagonal scatters by if that is less
             spot_cells = cap_spot_cells(entry_noise.out, T, adjacent_cells(labels)) if light_share and labels is not None \
                 else None
+            if spot_cells is not None and spot_cells["scaled_by"] < 1.0:
+                log.info("the spots' own cells: the frames' noise, a share of the light, makes them %.2g%% noisy, but "
+                         "T's diagonal scatters by %.2g%% against its neighbours' (spots rendered or exposed with less "
+                         "noise than the light about them): their variance in %s taken as that",
+                         100 * spot_cells["predicted_sigma"], 100 * spot_cells["scatter_sigma"], T_VAR_FILE)
             entry_noise.out.flush()
             del entry_noise.out
             write_noise(tmp, noise, entry_noise.entry_sigma, f"{noise.frames} of the beam frames, spread over the scan",

@@ -258,3 +258,43 @@ def test_the_diagonals_scatter_is_its_noise_and_caps_a_share_it_does_not_have():
             assert record["scaled_by"] == pytest.approx(expected) and record["scaled_by"] < 0.01
             np.testing.assert_allclose(np.diag(variance), np.diag(before) * expected)
     assert cap_spot_cells(np.zeros((200, 200)), clean, np.empty((0, 2), int)) is None
+
+
+def test_spots_rendered_without_noise_are_not_taken_as_noisy_as_the_light_about_them(tmp_path):
+    """A path tracer's noise of 16 samples in every pixel but the spots' (a spotlight
+    sampled at every hit): the frames' noise is still read as a share of the light, which
+    would make each spot's own cell as noisy as its pixels' squares say; build-isf sees T's
+    diagonal scatter far less than that and scales T_var's diagonal down to it (noise.json's
+    spot_cells: 9.7% said, 2% scattered, scaled by 0.08), and decompose's raise of the
+    diagonal with it. With the spots noisy too it keeps them (scatter 13%: scaled by 1)."""
+    from ilt.isf.noise import FrameNoise, light_share_variance
+    from ilt.sim.render import render_scene
+    from tests.isf.test_build import run
+
+    sim = tmp_path / "sim"
+    run("simulate", "m", "--frames", "--beams", 32, "--px-per-beam", 12, "-o", sim)
+    p = json.loads((sim / "manifest.json").read_text())["parameters"]
+    scene = render_scene("m", 32, p["albedo"], p["seed"], p["spot"], p["fine"], p["px_per_beam"])
+    frames = sorted((sim / "hdr").glob("beam-*.exr"))
+    records = {}
+    for name, spots_noisy in (("direct", False), ("all", True)):
+        rng = np.random.default_rng(5)
+        out = tmp_path / name
+        shutil.copytree(sim / "hdr", out)
+        for j, f in enumerate(frames):
+            image, attributes = read_exr(f)
+            x = np.maximum(image[..., 0].astype(np.float64), 0.0)
+            spot = np.zeros_like(x) if spots_noisy else np.minimum(scene.spot_image(j), x)
+            noisy = spot + (x - spot) * rng.gamma(16.0, 1.0 / 16.0, x.shape)
+            write_exr(out / f.name, noisy.astype(np.float32), ["Y"], {k: v for k, v in attributes.items()
+                                                                      if k.startswith("ilt:")})
+        run("centroids", out, "-o", tmp_path / f"spots-{name}", "--workers", 1)
+        build_isf(out, tmp_path / f"spots-{name}", tmp_path / f"isf-{name}", workers=1)
+        record = read_noise(tmp_path / f"isf-{name}")
+        assert light_share_variance(FrameNoise.from_record(record)) > 0
+        records[name] = record["spot_cells"]
+    assert records["direct"]["predicted_sigma"] > 0.05 and records["direct"]["scaled_by"] < 0.15
+    assert records["all"]["scaled_by"] > 0.5
+    T = load_isf(tmp_path / "isf-direct").T
+    variance = np.load(tmp_path / "isf-direct" / T_VAR_FILE)
+    assert np.median(np.diag(variance) / np.diag(T) ** 2) < 0.15 * records["direct"]["predicted_sigma"] ** 2

@@ -131,8 +131,15 @@ def _lost_beams(executor: Executor, pending: deque) -> str:
             f"{', '.join(sorted(hows)) or 'died'} before finishing them ({hint})")
 
 
-def _beam_list(beams: Sequence[int]) -> str:
-    """Beams as text: "beam 3", "beams 16-31", "beams 2, 5-7"."""
+def _beam_list(beams: Sequence) -> str:
+    """Beams as text: "beam 3", "beams 16-31", "beams 2, 5-7"; a task that carries its
+    frames' paths instead of beam numbers (build-isf's fold pass) by their names: "frames
+    beam-00016.exr ... beam-00031.exr (16)"."""
+    if not all(isinstance(b, int) or (hasattr(b, "__index__") and not isinstance(b, bool)) for b in beams):
+        names = [os.path.basename(str(b)) for b in beams]
+        shown = ", ".join(names) if len(names) <= 3 else f"{names[0]} ... {names[-1]} ({len(names)})"
+        return f"frame{'s' if len(names) > 1 else ''} {shown}"
+    beams = [int(b) for b in beams]
     runs: list[list[int]] = []
     for b in beams:
         if runs and b == runs[-1][1] + 1:

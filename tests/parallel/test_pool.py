@@ -33,3 +33,21 @@ def test_stopping_a_pool_with_cancelled_chunks_queued_leaves_its_thread_quiet(mo
     assert raised == [], [r.exc_value for r in raised]
     assert all(f.cancelled() for f in cancelled)
     assert running.exception() is not None  # its worker was killed under it
+
+
+def test_a_dead_worker_is_named_by_its_beams_or_by_its_frames():
+    """run_chunks' error when a worker process dies names the chunk it held: by its beams
+    (numpy's integers too), or, for a task whose first item is its frames' paths (build-isf's
+    fold pass), by those frames' names (it raised a TypeError instead of the WorkerError)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from ilt.parallel.chunks import _beam_list
+
+    assert _beam_list([2, 3, 4, 7]) == "beams 2-4, 7"
+    assert _beam_list([np.int64(5)]) == "beam 5"
+    frames = [Path("hdr") / f"beam-{b:05d}.exr" for b in range(16, 32)]
+    assert _beam_list(frames) == "frames beam-00016.exr ... beam-00031.exr (16)"
+    assert _beam_list(frames[:2]) == "frames beam-00016.exr, beam-00017.exr"
+

@@ -66,7 +66,10 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
     On noisy frames (cell sampling) it also measures their noise against the pixel's level
     and writes noise.json and T_var.npy, the variance of every entry of T: 'ilt decompose'
     takes that as T's noise, and the fine fit tells a cell's slope from its noise by it.
-    There, a pixel 6 sigma above all 8 of its neighbours (a path tracer's firefly, a hot
+    Noise that is a share of each pixel's light (a path tracer's) makes each spot's own
+    cell as noisy as its pixels' squares say, or as T's diagonal scatters if that is less
+    (noise.json's spot_cells; decompose corrects the inverse's bias by it). On noisy
+    frames a pixel 6 sigma above all 8 of its neighbours (a path tracer's firefly, a hot
     pixel; the spot's own disc excepted) is replaced by their median before the sums,
     and the manifest counts them ('outliers'). The frames on disk are not changed.
 

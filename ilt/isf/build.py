@@ -677,8 +677,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             fields["coverage"] = {"fraction": float(np.mean(labels >= 0)), "lit": lit_info}
         if entry_noise is not None:
             # the spots' cells as noisy as the share says, or as T's diagonal scatters by if that is less
-            spot_cells = cap_spot_cells(entry_noise.out, T, adjacent_cells(labels)) if light_share and labels is not None \
-                else None
+            spot_cells = None
+            if light_share and labels is not None:
+                spot_cells = cap_spot_cells(entry_noise.out, T, adjacent_cells(labels))
             if spot_cells is not None and spot_cells["scaled_by"] < 1.0:
                 log.info("the spots' own cells: the frames' noise, a share of the light, makes them %.2g%% noisy, but "
                          "T's diagonal scatters by %.2g%% against its neighbours' (spots rendered or exposed with less "

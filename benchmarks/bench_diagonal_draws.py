@@ -164,14 +164,19 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=20)
     ap.add_argument("--dense", action="store_true", help="the sweep's --dense lattices")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--json", type=Path, help="every draw's nine errors, as drawn and corrected, per scene and scan")
     args = ap.parse_args()
     if args.dense:
         noisy_sweep.dense()
     frames = args.frames or f"hdr-mc{args.samples:g}"
     rng = np.random.default_rng(args.seed)
+    results = {}
     for scene in filter(None, args.scenes.split(",")):
         result = bench_scene(args.scratch / f"e{args.electrons:g}", scene, frames, args.samples, args.draws, rng)
         print("\n" + report(scene, args.samples, result), flush=True)
+        results[scene] = {str(count): {k: np.asarray(v).tolist() for k, v in r.items()} for count, r in result.items()}
+    if args.json:
+        args.json.write_text(json.dumps({"samples": args.samples, "draws": args.draws, "scenes": results}))
 
 
 if __name__ == "__main__":

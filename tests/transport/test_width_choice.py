@@ -1,7 +1,9 @@
-"""The regularisation's width, chosen by its estimated risk (ilt.transport.regularise.choose_width)."""
+"""The regularisation's width, chosen by its estimated risk (ilt.transport.regularise.choose_width), and the noisy diagonal's raise."""
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from ilt.isf.fine import adjacent_cells
@@ -136,3 +138,30 @@ def test_areas_need_their_pairs():
         R.regularise_isf(noisy, (3, 4), 2e-3, areas=areas)
     with pytest.raises(ValueError, match="areas"):
         R.regularise_isf(noisy, None, 2e-3, pairs=pairs, areas=np.r_[areas[:-1], 0.0])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(min_value=2, max_value=12), st.integers(min_value=0, max_value=2**31 - 1))
+def test_the_diagonals_raise_is_its_variance_over_itself_and_nothing_else(m, seed):
+    """For any T and variance: raise_diagonal changes the diagonal only, each entry by its
+    variance over itself where it is positive (0 where it is not), and leaves T as it was;
+    nothing is raised when every relative variance is under the floor."""
+    from ilt.transport.regularise import DIAGONAL_FLOOR, diagonal_raise, raise_diagonal
+
+    rng = np.random.default_rng(seed)
+    T = rng.normal(0.0, 0.1, (m, m))
+    T[np.diag_indices(m)] = rng.uniform(-0.2, 1.0, m)
+    variance = rng.uniform(0.0, 0.05, (m, m))
+    before = T.copy()
+    raise_by, record = diagonal_raise(T, variance)
+    d, v = np.diagonal(T), np.diagonal(variance)
+    if raise_by is None:
+        assert np.all((d <= 0) | (v / np.where(d > 0, d, 1.0) ** 2 <= DIAGONAL_FLOOR))
+        return
+    np.testing.assert_allclose(raise_by, np.where(d > 0, v / np.where(d > 0, d, 1.0), 0.0))
+    out = raise_diagonal(T, raise_by)
+    np.testing.assert_array_equal(T, before)
+    off = ~np.eye(m, dtype=bool)
+    np.testing.assert_array_equal(out[off], T[off])
+    np.testing.assert_allclose(np.diagonal(out), d + raise_by)
+    assert record["max_relative_raise"] >= record["mean_relative_raise"] >= 0

@@ -1,4 +1,5 @@
-"""The regularisation's width, chosen by its estimated risk (ilt.transport.regularise.choose_width), and the noisy diagonal's raise."""
+"""The regularisation's width, chosen by its estimated risk (ilt.transport.regularise.choose_width),
+and the noisy diagonal's raise (diagonal_raise)."""
 
 import numpy as np
 import pytest

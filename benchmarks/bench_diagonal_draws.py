@@ -2,6 +2,7 @@
 
     python benchmarks/noisy_sweep.py --samples 4 --scratch DIR [--dense]   # first: renders and scans
     python benchmarks/bench_diagonal_draws.py --scratch DIR --samples 4 [--scenes m,textured] [--draws 20] [--dense]
+                                              [--json PATH] [--plot PNG]
 
 With a path tracer's Monte Carlo noise of few samples, T's diagonal (each spot's own cell,
 a few bright pixels) is by far its noisiest part: 20% a beam at 4 samples, while the
@@ -157,6 +158,34 @@ def report(scene: str, samples: float, result: dict) -> str:
     return "\n".join(lines)
 
 
+def plot(results: dict, samples: float, path: Path) -> None:
+    """Each scene's mean error (bounces 1-3 of the three photos) against beams: every draw
+    as drawn and corrected (thin lines), their means, and the noise-free diagonal's."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
+
+    fig, axes = plt.subplots(1, len(results), figsize=(4.2 * len(results), 3.6), squeeze=False)
+    for ax, (scene, result) in zip(axes[0], results.items()):
+        counts = sorted(result)
+        for kind, colour, label in (("noisy", "tab:red", "as drawn"), ("corrected", "tab:blue", "corrected")):
+            draws = np.array([result[c][kind].mean(axis=1) for c in counts])        # (scans, draws)
+            ax.loglog(counts, draws, color=colour, alpha=0.15, lw=0.8)
+            ax.loglog(counts, draws.mean(axis=1), "-o", color=colour, label=f"{label} (mean of draws)")
+        ax.loglog(counts, [result[c]["floor"].mean() for c in counts], "--", color="k", label="noise-free diagonal")
+        ax.set_xlabel("beams")
+        ax.set_title(f"{scene} ({samples:g} samples, {len(result[counts[0]]['noisy'])} draws)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.set_xticks(counts, [str(c) for c in counts])
+        ax.xaxis.set_minor_formatter(NullFormatter())
+    axes[0][0].set_ylabel("mean relative L2 error, bounces 1-3")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     noisy_sweep.scan_arguments(ap, "m,textured")
@@ -165,6 +194,7 @@ def main() -> None:
     ap.add_argument("--dense", action="store_true", help="the sweep's --dense lattices")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--json", type=Path, help="every draw's nine errors, as drawn and corrected, per scene and scan")
+    ap.add_argument("--plot", type=Path, help="error against beams, every draw and their means (PNG)")
     args = ap.parse_args()
     if args.dense:
         noisy_sweep.dense()
@@ -172,11 +202,15 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     results = {}
     for scene in filter(None, args.scenes.split(",")):
-        result = bench_scene(args.scratch / f"e{args.electrons:g}", scene, frames, args.samples, args.draws, rng)
-        print("\n" + report(scene, args.samples, result), flush=True)
-        results[scene] = {str(count): {k: np.asarray(v).tolist() for k, v in r.items()} for count, r in result.items()}
+        results[scene] = bench_scene(args.scratch / f"e{args.electrons:g}", scene, frames, args.samples, args.draws,
+                                     rng)
+        print("\n" + report(scene, args.samples, results[scene]), flush=True)
     if args.json:
-        args.json.write_text(json.dumps({"samples": args.samples, "draws": args.draws, "scenes": results}))
+        args.json.write_text(json.dumps({"samples": args.samples, "draws": args.draws, "scenes": {
+            scene: {str(c): {k: np.asarray(v).tolist() for k, v in r.items()} for c, r in result.items()}
+            for scene, result in results.items()}}))
+    if args.plot:
+        plot(results, args.samples, args.plot)
 
 
 if __name__ == "__main__":

@@ -68,8 +68,12 @@ TRIM_KEEP = 0.98
 
 def _trim_consistency(keep: float = TRIM_KEEP) -> float:
     """... over which a normal variable's mean square is this share of its variance:
-    ``(keep - 2 z phi(z)) / keep`` with ``P(|x| < z) = keep`` (0.8735 for 98%: the bins'
-    variances were 13% low, a path tracer's share 17% low at 4 samples and 13% at 16)."""
+    ``(keep - 2 z phi(z)) / keep`` with ``P(|x| < z) = keep`` (0.8735 for 98%). The knots
+    keep the trimmed mean squares, which the thresholds that read them were measured with
+    (divided by it, the photon-only sweep's fine fit sloped 73 of the M's 96 cells where it
+    had kept all flat, and its 96- and 192-beam scans were 16% and 8% worse); the share of
+    the light read off them, taken as the spots' cells' own variance, is divided by it
+    (:func:`light_share_variance`: 13% low at 16 samples, 17% at 4)."""
     from statistics import NormalDist
 
     z = NormalDist().inv_cdf(0.5 + keep / 2)
@@ -84,7 +88,8 @@ class FrameNoise:
     """Per-pixel variance of a beam frame against its level, piecewise linear through
     ``levels`` (increasing) and ``variances`` (non-decreasing), frame units^2.
 
-    frames / pixels / bins: what the fit used."""
+    frames / pixels / bins: what the fit used; trimmed: the knots are trimmed mean squares
+    (frames with no negative pixel), else squared MADs (:data:`TRIM_KEEP`)."""
 
     levels: tuple[float, ...]
     variances: tuple[float, ...]
@@ -92,6 +97,7 @@ class FrameNoise:
     pixels: int
     bins: int
     slope: float = 0.0
+    trimmed: bool = False
 
     def pixel_variance(self, signal: np.ndarray) -> np.ndarray:
         x, v = np.asarray(self.levels), np.asarray(self.variances)
@@ -106,11 +112,11 @@ class FrameNoise:
     def from_record(cls, data: dict) -> FrameNoise:
         """The model of a ``noise.json`` record (:func:`read_noise`)."""
         return cls(tuple(data["levels"]), tuple(data["variances"]), data["frames"], data["pixels"], data["bins"],
-                   float(data["slope"]))
+                   float(data["slope"]), bool(data.get("trimmed", False)))
 
     def as_dict(self) -> dict:
         return {"levels": list(self.levels), "variances": list(self.variances), "slope": self.slope,
-                "frames": self.frames, "pixels": self.pixels, "bins": self.bins}
+                "frames": self.frames, "pixels": self.pixels, "bins": self.bins, "trimmed": self.trimmed}
 
 
 def frame_residuals(frame: np.ndarray, spot: np.ndarray | None = None, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -162,8 +168,7 @@ def fit_frame_noise(frames, spots=None) -> FrameNoise | None:
         robust.append((MAD_SIGMA * mad) ** 2 / 1.25)
         if not signed:   # mostly zeros where the light is faint: a MAD of 0; the mean square, its 2% largest out
             squares = np.sort(rs * rs)
-            kept = float(np.mean(squares[:max(1, int(np.ceil(TRIM_KEEP * squares.size)))]))
-            variances.append(kept / (1.25 * TRIM_CONSISTENCY))
+            variances.append(float(np.mean(squares[:max(1, int(np.ceil(TRIM_KEEP * squares.size)))])) / 1.25)
         counts.append(float(part.size))
     x, v = np.array(levels), np.array(robust if signed else variances)
     if not signed and not _noise_without_negatives(x, v, parts, frames, spots):
@@ -174,7 +179,8 @@ def fit_frame_noise(frames, spots=None) -> FrameNoise | None:
     upper = slice(x.size // 2, None)                 # above the last knot: the upper half's slope
     slope = float(np.polyfit(x[upper], v[upper], 1)[0]) if x[upper].size >= 2 and np.ptp(x[upper]) > 0 else 0.0
     return FrameNoise(levels=tuple(float(a) for a in x), variances=tuple(float(b) for b in v),
-                      frames=len(frames), pixels=int(s.size), bins=int(x.size), slope=max(slope, 0.0))
+                      frames=len(frames), pixels=int(s.size), bins=int(x.size), slope=max(slope, 0.0),
+                      trimmed=not signed)
 
 
 def _noise_without_negatives(levels: np.ndarray, variances: np.ndarray, parts, frames, spots) -> bool:
@@ -214,7 +220,8 @@ def light_share_variance(noise: FrameNoise) -> float:
     :data:`SHARE_EXPONENT`: the median ratio there), else 0 (photon and read noise). A
     spot's own cell then has the variance ``share * sum of its pixels' squares``, where
     :func:`cell_variance`, each pixel at the cell's mean level and the curve carried on as
-    photon noise's line past the knots, put a spot's cell 60x low (docs/fullres.md)."""
+    photon noise's line past the knots, put a spot's cell 60x low (docs/fullres.md). Knots
+    that are trimmed mean squares are taken at their normal consistency (:func:`_trim_consistency`)."""
     x, v = np.asarray(noise.levels), np.asarray(noise.variances)
     upper = slice(x.size // 2, None)
     use = (x[upper] > 0) & (v[upper] > 0)
@@ -223,7 +230,8 @@ def light_share_variance(noise: FrameNoise) -> float:
     lx, lv = np.log(x[upper][use]), np.log(v[upper][use])
     if np.ptp(lx) <= 0 or np.polyfit(lx, lv, 1)[0] < SHARE_EXPONENT:
         return 0.0
-    return float(np.median(v[upper][use] / x[upper][use] ** 2))
+    share = float(np.median(v[upper][use] / x[upper][use] ** 2))
+    return share / TRIM_CONSISTENCY if noise.trimmed else share
 
 
 #: beams with at least 2 neighbouring cells that :func:`diagonal_scatter` needs

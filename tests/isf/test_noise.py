@@ -11,7 +11,7 @@ from ilt.io.exr import read_exr, write_exr
 from ilt.isf.build import build_isf, sample_like
 from ilt.isf.directory import load_isf
 from ilt.isf.fine import MIN_EXPLAINED, CellGeometry, FineAccumulator, fit_operator
-from ilt.isf.noise import NOISE_FILE, T_VAR_FILE, fit_frame_noise, read_noise
+from ilt.isf.noise import NOISE_FILE, T_VAR_FILE, TRIM_CONSISTENCY, fit_frame_noise, read_noise
 from ilt.transport.regularise import BIAS_WEIGHT
 
 READ_E = 3.0
@@ -62,19 +62,19 @@ def test_the_frames_noise_is_read_off_the_frames(gain):
 @pytest.mark.parametrize("gain", [0.5, 5.0])
 def test_noise_that_never_goes_below_zero_is_read_too(gain):
     """Photon noise alone (no read noise: counts, or a path tracer's Monte Carlo) never
-    reads below zero, yet it is noise: the fit gives X / gain within 8% where the frames
-    hold light (and 0 in the dark corner, which holds none), where it once gave no model
-    and a Lambertian scan was refused for want of a noise floor; its bins' trimmed mean
-    squares, taken as the variance, read 13% low before their normal consistency factor.
-    Noise-free frames still give none, their fine detail too (a texture as fine as noise,
-    1% of the light)."""
+    reads below zero, yet it is noise: the fit gives X / gain within 20% where the frames
+    hold light (its bins' trimmed mean squares: 13% low, the normal consistency factor's
+    share) and 0 in the dark corner, which holds none, where it once gave no model and a
+    Lambertian scan was refused for want of a noise floor. Noise-free frames still give
+    none, their fine detail too (a texture as fine as noise, 1% of the light)."""
     rng = np.random.default_rng(3)
     clean, spots = _frames(rng)
     noisy = [_noisy(f, gain, rng, read=0.0) for f in clean]
     assert min(float(f.min()) for f in noisy) >= 0.0
     fit = fit_frame_noise(noisy, spots)
     for level in (100.0, 200.0, 350.0):
-        assert fit.pixel_variance(np.array([level]))[0] == pytest.approx(level / gain, rel=0.08)
+        assert fit.pixel_variance(np.array([level]))[0] == pytest.approx(level / gain, rel=0.2)
+        assert fit.pixel_variance(np.array([level]))[0] / TRIM_CONSISTENCY == pytest.approx(level / gain, rel=0.08)
     assert fit.pixel_variance(np.array([0.0]))[0] == pytest.approx(0.0, abs=0.05 / gain)
     textured = [f * (1.0 + 0.01 * rng.standard_normal(f.shape)) for f in clean]
     assert fit_frame_noise(textured, spots) is None

@@ -317,3 +317,18 @@ def test_the_diagonals_scatter_on_a_grid_of_cells_with_an_edge(sigma):
     measured, beams = diagonal_scatter(noisy, pairs)
     assert beams == len(T) and measured == pytest.approx(sigma, rel=0.25)
     assert diagonal_scatter(T, pairs)[0] < 0.02
+
+
+def test_a_noise_record_says_whether_its_knots_are_trimmed_mean_squares():
+    """noise.json keeps ``trimmed`` (frames with no negative pixel: trimmed mean squares,
+    whose share of the light is divided by the normal consistency factor); a record written
+    before it had the key reads as squared MADs, its share as it was."""
+    from ilt.isf.noise import FrameNoise, light_share_variance
+
+    levels = tuple(float(x) for x in np.linspace(1.0, 100.0, 12))
+    noise = FrameNoise(levels, tuple(0.05 * x * x for x in levels), 8, 1000, 12, 0.0, trimmed=True)
+    assert FrameNoise.from_record(noise.as_dict()) == noise
+    old = {k: v for k, v in noise.as_dict().items() if k != "trimmed"}
+    assert FrameNoise.from_record(old).trimmed is False
+    assert light_share_variance(noise) == pytest.approx(0.05 / TRIM_CONSISTENCY)
+    assert light_share_variance(FrameNoise.from_record(old)) == pytest.approx(0.05)

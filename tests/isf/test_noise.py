@@ -206,6 +206,19 @@ def test_the_fine_fit_tells_a_slope_from_noise():
     assert clean[1] == pytest.approx(1.0)
 
 
+def test_a_cell_whose_light_varies_within_its_noise_is_kept_flat():
+    """A slope whose light varies across the cell by about the spread of the noise's own
+    variation (slope 0.05 under noise 1: 37-121 against a spread of 34): the share divides
+    two noisy differences, and over six draws of the noise it read >= 0.9 in three (0.97,
+    1.26, 1.56), sloping the cell on noise; each is flat now. A slope 6x steeper, whose
+    light varies 70x its noise's spread, keeps its slope in all six."""
+    for seed in range(6):
+        faint = _two_cells(np.random.default_rng(seed), slope=0.05, pixel_sigma=1.0).finish()
+        assert faint[1] < MIN_EXPLAINED
+        steep = _two_cells(np.random.default_rng(seed), slope=0.3, pixel_sigma=1.0).finish()
+        assert steep[1] >= MIN_EXPLAINED
+
+
 def test_each_spots_own_cell_takes_its_pixels_squares_when_the_noise_is_a_share():
     """build-isf's T_var: columns 1-2 of m = 3 (a block from column 1): their own rows
     (1 and 2, T's diagonal) are at least share x their cells' sums of squared pixels (the

@@ -90,7 +90,7 @@ class Scan:
         norms = np.linalg.norm(raw, axis=0)
         return raw / norms, variance / norms[None, :] ** 2
 
-    def errors(self, case: Path, T: np.ndarray, mask: np.ndarray, truth: dict) -> np.ndarray:
+    def errors(self, T: np.ndarray, mask: np.ndarray, truth: dict) -> np.ndarray:
         """(photos x 3,) full-resolution errors of bounces 1-3 over ``mask``."""
         from ilt.decompose.fullres import full_resolution, photo_noise_models
         from ilt.decompose.stage import load_operator
@@ -110,6 +110,8 @@ class Scan:
 
 
 def bench_scene(root: Path, scene: str, frames: str, samples: float, draws: int, rng) -> dict:
+    from ilt.transport.regularise import diagonal_raise, raise_diagonal
+
     m, _, _ = noisy_sweep.lattice(scene)
     case = root / f"{scene}-{m}"
     scans = {count: case / f"scans-{frames}" / f"sweep-{count}" for count in noisy_sweep.nested_sets(scene, m)}
@@ -123,15 +125,13 @@ def bench_scene(root: Path, scene: str, frames: str, samples: float, draws: int,
         scan = Scan(case, where)
         T_floor = scan.raw.copy()
         T_floor[np.diag_indices(scan.isf.m)] = scan.clean_diagonal
-        floor = scan.errors(case, T_floor / np.linalg.norm(T_floor, axis=0), mask, truth)
+        floor = scan.errors(T_floor / np.linalg.norm(T_floor, axis=0), mask, truth)
         noisy, corrected = [], []
         for _ in range(draws):
-            from ilt.transport.regularise import diagonal_raise, raise_diagonal
-
             T, variance = scan.drawn(rng, samples)
-            noisy.append(scan.errors(case, T, mask, truth))
+            noisy.append(scan.errors(T, mask, truth))
             raise_by, _ = diagonal_raise(T, variance)
-            corrected.append(scan.errors(case, T if raise_by is None else raise_diagonal(T, raise_by), mask, truth))
+            corrected.append(scan.errors(T if raise_by is None else raise_diagonal(T, raise_by), mask, truth))
         out[count] = {"floor": floor, "noisy": np.array(noisy), "corrected": np.array(corrected)}
         print(f"  {scene} {count}: done", file=sys.stderr, flush=True)
     return out

@@ -666,10 +666,16 @@ def _unmixed_T(isf: ISF, spilled: Unmixing, cache_dir, stack: contextlib.ExitSta
     the operator cache (``stack`` removes it), written a block of columns at a time."""
     if not isinstance(isf.T, np.memmap):
         return spilled.unmix(np.asarray(isf.T))
+    return spilled.unmix(isf.T, out=_scratch_map(isf.T.shape, "ilt-unmixed-", cache_dir, stack))
+
+
+def _scratch_map(shape, prefix: str, cache_dir, stack: contextlib.ExitStack) -> np.memmap:
+    """A float64 memory map of ``shape`` in a temporary directory beside the operator cache
+    (the system's temporary directory without one), removed when ``stack`` closes: a copy
+    of a memory-mapped T that is not held in memory."""
     scratch = stack.enter_context(tempfile.TemporaryDirectory(
-        prefix="ilt-unmixed-", dir=cache_dir if cache_dir and Path(cache_dir).is_dir() else None))
-    out = np.lib.format.open_memmap(Path(scratch) / "T.npy", mode="w+", dtype=np.float64, shape=isf.T.shape)
-    return spilled.unmix(isf.T, out=out)
+        prefix=prefix, dir=cache_dir if cache_dir and Path(cache_dir).is_dir() else None))
+    return np.lib.format.open_memmap(Path(scratch) / "T.npy", mode="w+", dtype=np.float64, shape=shape)
 
 
 def _split(op, spilled: Unmixing | None, values: np.ndarray, n_bounces: int, tol: float):
@@ -835,9 +841,7 @@ def _debiased_diagonal(T, variance, owned: bool, cache_dir, stack: contextlib.Ex
     if owned:
         out = T
     elif isinstance(T, np.memmap):
-        scratch = stack.enter_context(tempfile.TemporaryDirectory(
-            prefix="ilt-debiased-", dir=cache_dir if cache_dir and Path(cache_dir).is_dir() else None))
-        out = np.lib.format.open_memmap(Path(scratch) / "T.npy", mode="w+", dtype=np.float64, shape=T.shape)
+        out = _scratch_map(T.shape, "ilt-debiased-", cache_dir, stack)
     return raise_diagonal(T, raise_by, out), record
 
 

@@ -106,10 +106,10 @@ def near_chunk(files, shape, centres, radius):
 def sum_noise(noise, frames: int):
     """The noise model of a sum of ``frames`` frames of the level of its mean (each knot's
     level and variance times ``frames``; photon noise's slope is a sum's too)."""
-    from ilt.isf.noise import FrameNoise
+    from dataclasses import replace
 
-    return FrameNoise(tuple(frames * np.asarray(noise.levels)), tuple(frames * np.asarray(noise.variances)),
-                      noise.frames, noise.pixels, noise.bins, noise.slope)
+    return replace(noise, levels=tuple(frames * np.asarray(noise.levels)),
+                   variances=tuple(frames * np.asarray(noise.variances)))
 
 
 def far_from_sum(frame_sum: np.ndarray, near: np.ndarray, noise, frames: int) -> np.ndarray:

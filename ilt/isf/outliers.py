@@ -39,14 +39,14 @@ def screening_model(noise):
     them: on the M with 1e-3 of the pixels at 20x, the top bin's variance was 68x and the
     slope 33x the clean fit's), and a model that noisy hides every one of them; the faint
     bins hold too many pixels to be moved."""
-    from ilt.isf.noise import FrameNoise
+    from dataclasses import replace
 
     keep = max(2, int(np.ceil(SCREEN_KNOTS * len(noise.levels))))
     levels, variances = np.asarray(noise.levels[:keep]), np.asarray(noise.variances[:keep])
     spread = levels - levels.mean()
     width = float(np.dot(spread, spread))
     slope = float(np.dot(spread, variances - variances.mean())) / width if width > 0 else 0.0
-    return FrameNoise(tuple(levels), tuple(variances), noise.frames, noise.pixels, noise.bins, max(slope, 0.0))
+    return replace(noise, levels=tuple(levels), variances=tuple(variances), slope=max(slope, 0.0))
 
 
 _BUFFERS: dict = {}

@@ -56,7 +56,7 @@ def peak_of(hdr: Path) -> float:
 
 
 def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_NOISE_E,
-               samples: float = 0.0, direct=None) -> None:
+               samples: float = 0.0, direct=None, hits: float = 0.0) -> None:
     """dst/hdr: every beam frame of src/hdr with photon and read noise, ``gain``
     photo-electrons per frame unit (see the module doc); ``read_noise`` 0: photon noise
     alone, which never reads below zero (as a path tracer's Monte Carlo noise).
@@ -68,7 +68,15 @@ def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_
     below zero, and its upper tail is long. ``direct`` (with ``samples``): a function of
     the beam's index giving its frame's direct light (the laser spot), which is then left
     noise-free and only the interreflected rest noisy, as a path tracer that samples the
-    light source at every hit (next-event estimation) renders a spotlight's spot."""
+    light source at every hit (next-event estimation) renders a spotlight's spot.
+
+    ``hits`` in (0, 1) (with ``samples``): sparse path hits instead of Gamma weights. Each of
+    the ``samples`` paths of a pixel finds the light with chance ``hits`` and then carries
+    1 / (samples hits) of the pixel's value: the pixel reads its value times
+    Binomial(samples, hits) / (samples hits). That is a path tracer's noise where the light
+    is small (a laser's spot lighting the room is found by a bounce only now and then): a
+    pixel reads exactly zero with chance (1 - hits)^samples and otherwise a few whole hits,
+    relative noise sqrt((1 - hits) / (samples hits))."""
     from ilt.io.exr import read_exr, write_exr
 
     dst.mkdir(parents=True)
@@ -76,11 +84,11 @@ def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_
     for j, f in enumerate(frames):
         image, attributes = read_exr(f)
         x = np.maximum(image.astype(np.float64), 0)
-        if samples > 0 and direct is not None:
-            spot = np.minimum(direct(j).reshape(image.shape), x)
-            out = spot + (x - spot) * rng.gamma(samples, 1.0 / samples, image.shape)
-        elif samples > 0:
-            out = x * rng.gamma(samples, 1.0 / samples, image.shape)
+        if samples > 0:
+            weights = (rng.binomial(int(samples), hits, image.shape) / (samples * hits) if hits > 0
+                       else rng.gamma(samples, 1.0 / samples, image.shape))
+            spot = 0.0 if direct is None else np.minimum(direct(j).reshape(image.shape), x)
+            out = spot + (x - spot) * weights
         else:
             out = (rng.poisson(x * gain) + (rng.normal(0, read_noise, image.shape) if read_noise else 0.0)) / gain
         keep = {k: v for k, v in attributes.items() if k.startswith("ilt:")}
@@ -91,7 +99,7 @@ def noisy_copy(src: Path, dst: Path, gain: float, rng, read_noise: float = READ_
 
 
 def noisy_frames(case: Path, rng, electrons: float, read_noise: float = READ_NOISE_E,
-                 samples: float = 0.0, exact_direct: bool = False) -> Path:
+                 samples: float = 0.0, exact_direct: bool = False, hits: float = 0.0) -> Path:
     """The frames of ``case/hdr`` a benchmark runs on, made once: with ``samples`` > 0 the
     Monte Carlo copy ``hdr-mcS``; else with ``electrons`` > 0 the photon and read noise copy
     ``hdr-noisy`` (``hdr-noisy-readR`` at another read noise), ``electrons`` at the brightest
@@ -100,7 +108,7 @@ def noisy_frames(case: Path, rng, electrons: float, read_noise: float = READ_NOI
     ``case``'s manifest for them)."""
     hdr = case / "hdr"
     if samples > 0:
-        out = case / f"hdr-mc{samples:g}{'-direct' if exact_direct else ''}"
+        out = case / f"hdr-mc{samples:g}{f'-hits{hits:g}' if hits > 0 else ''}{'-direct' if exact_direct else ''}"
         if not out.exists():
             direct = None
             if exact_direct:
@@ -110,7 +118,7 @@ def noisy_frames(case: Path, rng, electrons: float, read_noise: float = READ_NOI
                 scene = render_scene(p["scene"], p["beams"], p["albedo"], p["seed"], p["spot"], p["fine"],
                                      p["px_per_beam"])
                 direct = scene.spot_image
-            noisy_copy(hdr, out, 1.0, rng, samples=samples, direct=direct)
+            noisy_copy(hdr, out, 1.0, rng, samples=samples, direct=direct, hits=hits)
         return out
     if electrons > 0:
         out = case / ("hdr-noisy" if read_noise == READ_NOISE_E else f"hdr-noisy-read{read_noise:g}")

@@ -123,20 +123,20 @@ def truth_bounces(case: Path, photo: str) -> np.ndarray:
     return np.load(case / "truth" / "photos" / f"{photo}-bounces.npy").astype(np.float64)
 
 
-def bounce_image(where: Path, photo: str, n: int) -> np.ndarray:
-    """(H, W) float64: the scan's full-resolution bounce ``n`` of ``photo``."""
+def bounce_image(where: Path, photo: str, n: int, dec: str = "dec") -> np.ndarray:
+    """(H, W) float64: the scan's full-resolution bounce ``n`` of ``photo`` (decomposed into ``where / dec``)."""
     from ilt.io.exr import read_exr
 
-    return read_exr(where / "dec" / photo / f"bounce-{n}.exr")[0][..., 0].astype(np.float64)
+    return read_exr(where / dec / photo / f"bounce-{n}.exr")[0][..., 0].astype(np.float64)
 
 
-def errors(case: Path, where: Path, mask: np.ndarray) -> np.ndarray:
-    """(photos, 3) relative L2 errors of bounces 1-3 over ``mask``."""
+def errors(case: Path, where: Path, mask: np.ndarray, dec: str = "dec") -> np.ndarray:
+    """(photos, 3) relative L2 errors of bounces 1-3 over ``mask`` (decomposed into ``where / dec``)."""
     out = np.empty((len(PHOTOS), 3))
     for p, photo in enumerate(PHOTOS):
         truth = truth_bounces(case, photo)
         for n in range(3):
-            est = bounce_image(where, photo, n + 1)
+            est = bounce_image(where, photo, n + 1, dec)
             out[p, n] = np.linalg.norm((est - truth[n])[mask]) / np.linalg.norm(truth[n][mask])
     return out
 

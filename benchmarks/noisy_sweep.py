@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -92,7 +93,8 @@ def nested_sets(scene: str, m: int) -> dict[int, list[int]]:
 
 def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None = None,
           keep_covered: bool = False, read_noise: float = coverage_bench.READ_NOISE_E,
-          samples: float = 0.0, exact_direct: bool = False) -> dict:
+          samples: float = 0.0, exact_direct: bool = False, hits: float = 0.0,
+          photo_samples: float = 0.0, photo_snr: float = 0.0) -> dict:
     m, px, spot = lattice(scene)
     if spot_px is not None:   # the laser's spot, whatever the scan: sigma in full-resolution pixels
         spot = spot_px / px
@@ -102,7 +104,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
         fine = ("--fine", 8) if scene == "occluded" and m > 384 else ()
         refine_bench.run("simulate", scene, "--frames", "--beams", m, "--px-per-beam", px, "--spot", spot,
                          *fine, "-o", case, "--force")
-    hdr = coverage_bench.noisy_frames(case, rng, electrons, read_noise, samples, exact_direct)
+    hdr = coverage_bench.noisy_frames(case, rng, electrons, read_noise, samples, exact_direct, hits)
     where, earlier = {}, None
     for count, beams in sorted(nested_sets(scene, m).items()):
         # --keep-covered: each scan built with the sparser scan's coverage (ilt build-isf --keep-covered)
@@ -113,17 +115,53 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
             where[count] = refine_bench.scan(case, hdr, f"sweep-{count}", beams)
         earlier = where[count]
     mask = refine_bench.covered(where[min(where)], cells_only=True)
+    dec = "dec"
+    if photo_samples > 0 or photo_snr > 0:   # every scan decomposes the same noisy photos, judged against the exact bounces
+        photos = noisy_photos(case, photo_samples, photo_snr)
+        dec = f"dec-{photos.name}"
+        for w in where.values():
+            if not (w / dec).exists():
+                refine_bench.run("decompose", "--isf", w / "isf", *[photos / f"{p}.exr" for p in PHOTOS],
+                                 "-o", w / dec, "--no-cache")
     rows = {}
     for count, w in where.items():
         manifest = json.loads((w / "isf" / "manifest.json").read_text())
-        rows[count] = {"errors": refine_bench.errors(case, w, mask).tolist(),
+        rows[count] = {"errors": refine_bench.errors(case, w, mask, dec).tolist(),
                        "covered": float(refine_bench.covered(w)[mask].mean()),
                        "frame_coverage": float(manifest["coverage"]["fraction"]),
                        "m_kept": int(manifest["m"])}
     return {"scene": scene, "lattice": m, "px_per_beam": px, "spot": spot, "electrons": electrons,
-            "read_noise": read_noise, "samples": samples, "exact_direct": exact_direct,
+            "read_noise": read_noise, "samples": samples, "exact_direct": exact_direct, "hits": hits,
+            "photo_samples": photo_samples, "photo_snr": photo_snr,
             "keep_covered": keep_covered,
             "base_pixels": int(mask.sum()), "scans": rows}
+
+
+def noisy_photos(case: Path, samples: float = 0.0, snr: float = 0.0) -> Path:
+    """``case / photos-mcS``: the scene's photos with a path tracer's noise of ``samples``
+    samples (each pixel times Gamma(S, 1/S)); or ``case / photos-snrX``: with photon noise
+    of signal-to-noise ratio ``snr`` at each photo's median (Poisson counts, X^2 photons
+    there). Drawn once: every scan sees the same photos."""
+    from ilt.io.exr import read_exr, write_exr
+
+    out = case / (f"photos-mc{samples:g}" if samples > 0 else f"photos-snr{snr:g}")
+    if not out.exists():
+        rng = np.random.default_rng(1)
+        tmp = out.with_name(out.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        for photo in PHOTOS:
+            image, attributes = read_exr(case / "photos" / f"{photo}.exr")
+            x = np.maximum(image.astype(np.float64), 0)
+            if samples > 0:
+                noisy = x * rng.gamma(samples, 1.0 / samples, image.shape)
+            else:
+                gain = snr**2 / np.median(x[x > 0])
+                noisy = rng.poisson(x * gain) / gain
+            write_exr(tmp / f"{photo}.exr", noisy.astype(np.float32), attributes.get("channels"),
+                      {k: v for k, v in attributes.items() if k.startswith("ilt:")})
+        tmp.rename(out)
+    return out
 
 
 def scan_arguments(ap: argparse.ArgumentParser, scenes: str) -> None:
@@ -159,8 +197,14 @@ def table(result: dict, per_beam: float) -> str:
     noise = f"{result['electrons']:g} e-" + ("" if result.get("read_noise", 3.0) else ", no read noise")
     if result.get("samples"):
         noise = f"Monte Carlo noise of {result['samples']:g} samples (no photon or read noise)"
+        if result.get("hits"):
+            noise = noise[:-1] + f"; sparse hits, each path finding the light with chance {result['hits']:g})"
         if result.get("exact_direct"):
             noise = noise[:-1] + "; the spots' direct light noise-free)"
+    if result.get("photo_samples"):
+        noise += f", photos with {result['photo_samples']:g} samples' noise"
+    elif result.get("photo_snr"):
+        noise += f", photos with photon noise of SNR {result['photo_snr']:g} at their median"
     lines = [(f"### {result['scene']}: lattice {result['lattice']} ({result['px_per_beam']:g} px per beam), "
               f"{noise}{kept}, over the {result['base_pixels']} pixels of the sparsest scan"), "",
              ("| m | m kept | rig hours | covered | " + " | ".join(f"{p} b{n}" for p in PHOTOS for n in (1, 2, 3))
@@ -220,6 +264,17 @@ def main() -> None:
     ap.add_argument("--exact-direct", action="store_true",
                     help="with --samples: the laser spots noise-free, only the interreflected light noisy (a path "
                          "tracer that samples a spotlight at every hit; frames hdr-mcS-direct)")
+    ap.add_argument("--hits", type=float, default=0.0,
+                    help="with --samples: sparse path hits instead of Gamma weights: each path finds the light "
+                         "with this chance, the pixel reads its value times Binomial(S, H) / (S H), exactly 0 "
+                         "with chance (1 - H)^S (frames hdr-mcS-hitsH)")
+    ap.add_argument("--photo-samples", type=float, default=0.0,
+                    help="decompose photos with a path tracer's noise of this many samples (each pixel times "
+                         "Gamma(S, 1/S), drawn once a scene; photos-mcS) instead of the exact ones; the truth "
+                         "stays exact")
+    ap.add_argument("--photo-snr", type=float, default=0.0,
+                    help="decompose photos with photon noise of this signal-to-noise ratio at each photo's median "
+                         "(Poisson; photos-snrX) instead of the exact ones; the truth stays exact")
     ap.add_argument("--keep-covered", action="store_true",
                     help="build each scan with 'ilt build-isf --keep-covered' the next sparser scan's ISF (a lab "
                          "that rescans denser, or ilt run's refine passes)")
@@ -244,7 +299,8 @@ def main() -> None:
     results = []
     for scene in filter(None, args.scenes.split(",")):
         results.append(sweep(args.scratch / f"e{args.electrons:g}", scene, args.electrons, rng, args.spot_px,
-                             args.keep_covered, args.read_noise, args.samples, args.exact_direct))
+                             args.keep_covered, args.read_noise, args.samples, args.exact_direct, args.hits,
+                             args.photo_samples, args.photo_snr))
         print("\n" + table(results[-1], per_beam), flush=True)
     if args.plot:
         plot(results, per_beam, args.plot)

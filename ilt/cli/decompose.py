@@ -76,7 +76,8 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
     bounces + residual at every pixel; coverage 1 where the scan models a pixel's
     indirect light, 0.5 on the rim within 10 px of a cell, where a pixel takes its
     nearest cell's indirect light up to the photo's; no pixel holds more indirect light than
-    the photo does, plus 3 sigma of the noise read off the photo's own pixels, and its cell's
+    the photo does, plus 3 sigma of the noise read off the photo's own pixels (at each
+    pixel's level, the median of the 5 x 5 pixels about it), and its cell's
     other pixels take the rest: summary.json's bounded_pixels);
     always bounces.npy (N, m[, k]), residual.npy, samples/ (the
     sample-level images: a strip or grid in the ISF's layout, and *.frame.exr cell

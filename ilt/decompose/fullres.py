@@ -99,7 +99,8 @@ def full_resolution(fine: FineOperator, photo: np.ndarray, decomposition, t1: np
         phi = fine.field(residual, terms, basis)                       # Phi_n
         if n == 0:
             bound, models = _photo_bound(flat[inside], phi, fine.geometry.label, m,
-                                         None if excluded is None else excluded[inside], photo_noise, image)
+                                         None if excluded is None else excluded[inside], photo_noise, image,
+                                         inside)
             if report is not None:
                 report.update(bounded_pixels=bound.bounded_pixels, bound="the photo" if models is None else
                               f"the photo + {BOUND_SIGMAS:g} sigma of its own noise")
@@ -260,26 +261,42 @@ class PhotoBound:
         return out
 
 
-def _photo_bound(photo, phi0, label, m, excluded, photo_noise, image):
+def _photo_bound(photo, phi0, label, m, excluded, photo_noise, image, inside):
     """:class:`PhotoBound` of ``Phi_0`` and the photo's noise models it used (None: none).
     ``photo_noise`` a function is called on ``image`` only when some pixel is over the
-    photo itself: a margin can only take pixels out of the bound."""
+    photo itself: a margin can only take pixels out of the bound. ``inside``: the indices of
+    ``photo``'s pixels in ``image``'s flattened grid."""
     models = photo_noise
     if callable(photo_noise):
         over = np.asarray(phi0) > np.maximum(np.asarray(photo, np.float64), 0.0)
         if excluded is not None:
             over &= ~excluded[:, None]
         models = photo_noise(image) if over.any() else None
-    margin = None if models is None else _margin(photo, models)
+    margin = None if models is None else _margin(image, inside, models)
     return PhotoBound(photo, phi0, label, m, excluded, margin), models
 
 
-def _margin(photo: np.ndarray, models: list) -> np.ndarray:
-    """(n, c) :data:`BOUND_SIGMAS` of each pixel's noise sigma, 0 in a channel without a model."""
-    out = np.zeros(photo.shape)
+def _margin(image: np.ndarray, inside, models: list) -> np.ndarray:
+    """(n, c) :data:`BOUND_SIGMAS` of the noise sigma of each pixel ``inside`` the cells, 0
+    in a channel without a model. The sigma is the model's at the pixel's level, not at its
+    own reading: under a path tracer's noise, whose sigma is a share of the light, a pixel
+    that read low got a margin as low and was cut, and the photo's noise went into every
+    later bounce (the M's flashlight bounce 2 at 4 samples: 0.10 of its light from the
+    photo's noise alone). The level is the median of the 5 x 5 square about the pixel
+    (:data:`ilt.isf.noise.LEVEL_WINDOW`; the model's bins are by that square's mean): where
+    the light is even, the two agree to the noise's skew; beside an edge the median keeps
+    the pixel's own side, so the background past a silhouette, dark beside bright surfaces,
+    is still bounded at its own dark level (the mean took half the surface's light there)."""
+    import cv2
+
+    from ilt.isf.noise import LEVEL_WINDOW
+
+    planes = np.asarray(image).reshape(image.shape[0], image.shape[1], -1)
+    out = np.zeros((len(inside), len(models)))
     for c, model in enumerate(models):
         if model is not None:
-            level = np.maximum(np.asarray(photo[:, c], np.float64), 0.0)
+            median = cv2.medianBlur(np.ascontiguousarray(planes[..., c], np.float32), LEVEL_WINDOW)
+            level = np.maximum(median.reshape(-1)[inside].astype(np.float64), 0.0)
             out[:, c] = BOUND_SIGMAS * np.sqrt(np.maximum(model.pixel_variance(level), 0.0))
     return out
 

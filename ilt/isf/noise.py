@@ -43,6 +43,10 @@ from pathlib import Path
 
 import numpy as np
 
+#: the side of the square about a pixel its level is read from (module doc: the fit bins
+#: pixels by its mean; decompose reads a photo's model at its median)
+LEVEL_WINDOW = 5
+
 NOISE_FILE = "noise.json"
 T_VAR_FILE = "T_var.npy"
 #: beam frames the fit reads, evenly spread over the scan
@@ -131,7 +135,7 @@ def frame_residuals(frame: np.ndarray, spot: np.ndarray | None = None, step: int
     kernel[step, step] = 1.0
     kernel[0, step] = kernel[-1, step] = kernel[step, 0] = kernel[step, -1] = -0.25
     d = convolve(X, kernel, mode="nearest")
-    level = uniform_filter(X, size=5, mode="nearest")
+    level = uniform_filter(X, size=LEVEL_WINDOW, mode="nearest")
     use = np.ones(X.shape, bool)
     use[[0, -1], :] = False
     use[:, [0, -1]] = False

@@ -407,6 +407,68 @@ def test_a_noisy_photo_keeps_its_noise_in_bounce_1():
     assert calls == [(64, 64, 1)] and report == {"bounded_pixels": 0, "bound": "the photo"}
 
 
+def test_a_path_tracers_noisy_photo_is_bounded_at_each_pixels_level_not_its_reading():
+    """Four flat cells of 32 x 32 px at levels 1, 2, 2, 4 a pixel, whose indirect light is
+    0.8 of it, under a photo of the level times Gamma(4, 1/4) (a path tracer's 4 samples:
+    sigma half the light). The photo's noise model read at each pixel's own value would give
+    the pixels that read low a margin as low and cut them (p + 3 sigma(p) under the indirect
+    light: some 40 of them); read at the level the model was fitted on (the 5 x 5 mean),
+    none is, and every bounce keeps its flat share."""
+    from types import SimpleNamespace
+
+    from ilt.decompose.fullres import full_resolution, photo_noise_models
+    from ilt.isf.fine import FineOperator
+
+    labels = (np.arange(64)[:, None] // 32) * 2 + (np.arange(64)[None, :] // 32)
+    level = np.array([1.0, 2.0, 2.0, 4.0])
+    fine = FineOperator(None, CellGeometry.from_labels(labels, 4), 0, np.zeros((0, 4, 4), np.float32))
+    rng = np.random.default_rng(7)
+    photo = (level[labels] * rng.gamma(4.0, 0.25, (64, 64))).astype(np.float32)[:, :, None]
+    models = photo_noise_models(photo)
+    assert models is not None
+    own = photo[:, :, 0].astype(np.float64).ravel()
+    indirect = 0.8 * level[labels].ravel()
+    assert np.count_nonzero(own + 3 * np.sqrt(models[0].pixel_variance(own)) < indirect) >= 20
+    totals = integrate(photo[:, :, 0], labels, 4)
+    held = 1024 * 0.8 * level
+    decomposition = SimpleNamespace(bounces=np.stack([totals - held, 0.6 * held, 0.3 * held])[:, :, None],
+                                    residual=(0.1 * held)[:, None], count=3)
+    report = {}
+    images = full_resolution(fine, photo, decomposition, np.ones(4), report=report, photo_noise=models)
+    assert report["bounded_pixels"] == 0
+    np.testing.assert_allclose(images["indirect"][:, :, 0].ravel(), indirect, rtol=1e-5)
+    np.testing.assert_allclose(images["bounce-2"][:, :, 0].ravel(), 0.6 * indirect, rtol=1e-5)
+
+
+def test_a_noisy_photos_dark_background_beside_a_surface_takes_no_indirect_light():
+    """One flat cell of 64 x 64 px, indirect light 1 a pixel; its photo is 4 times
+    Gamma(16, 1/16) a pixel but for 16 columns of dark background past a silhouette. The
+    margin is read at the 5 x 5 median, which keeps the background's own level beside the
+    bright columns (a 5 x 5 mean there is up to 0.4 of theirs, sigma 0.4: a margin of 1.2
+    that would leave the background its indirect light): the background holds none."""
+    from types import SimpleNamespace
+
+    from ilt.decompose.fullres import full_resolution, photo_noise_models
+    from ilt.isf.fine import FineOperator
+
+    labels = np.zeros((64, 64), np.int64)
+    fine = FineOperator(None, CellGeometry.from_labels(labels, 1), 0, np.zeros((0, 1, 1), np.float32))
+    photo = 4.0 * np.random.default_rng(11).gamma(16.0, 1 / 16, (64, 64))
+    photo[:, :16] = 0.0
+    photo = photo.astype(np.float32)[:, :, None]
+    models = photo_noise_models(photo)
+    assert models is not None
+    total = float(photo.sum())
+    decomposition = SimpleNamespace(bounces=np.array([[[total - 4096.0]], [[4096.0 * 0.6]], [[4096.0 * 0.3]]]),
+                                    residual=np.array([[409.6]]), count=3)
+    report = {}
+    images = full_resolution(fine, photo, decomposition, np.ones(1), report=report, photo_noise=models)
+    indirect = images["indirect"][:, :, 0]
+    assert report["bounded_pixels"] >= 16 * 64
+    np.testing.assert_array_equal(indirect[:, :16], 0.0)
+    np.testing.assert_allclose(indirect.sum(), 4096.0, rtol=1e-5)     # the cell keeps its light
+
+
 def test_the_rim_is_every_pixel_near_a_cell_and_its_nearest_pixel_inside():
     """Against brute force on random cells: the rim is the pixels outside every cell within
     RIM_PX (chessboard) of one, and each is paired with an inside pixel at its least

@@ -73,12 +73,13 @@ def reference_bounces(frames: np.ndarray, labels: np.ndarray, photo: np.ndarray,
     return out
 
 
-def measure(case: Path, frames_name: str, block: int) -> dict:
+def measure(case: Path, frames_name: str, block: int, photos: str = "photos") -> dict:
     from ilt.io.exr import read_exr
 
     scans = sorted((case / f"scans-{frames_name}").glob("sweep-*"), key=lambda p: int(p.name.split("-")[1]))
     scans = [s for s in scans if s.name.split("-")[1].isdigit() and len(s.name.split("-")) == 2]
     mask = refine_bench.covered(scans[0], cells_only=True)
+    dec = "dec" if photos == "photos" else f"dec-{photos}"   # noisy_sweep.py --photo-samples / --photo-snr
     rows = {}
     for scan in scans:
         manifest = json.loads((scan / "isf" / "manifest.json").read_text())
@@ -87,11 +88,11 @@ def measure(case: Path, frames_name: str, block: int) -> dict:
         labels = read_exr(scan / "isf" / "cells.exr")[0][..., 0].astype(np.int64)
         ours, ref = np.empty((len(PHOTOS), 3)), np.empty((len(PHOTOS), 3))
         for p, photo in enumerate(PHOTOS):
-            image = read_exr(case / "photos" / f"{photo}.exr")[0][..., 0].astype(np.float64)
+            image = read_exr(case / photos / f"{photo}.exr")[0][..., 0].astype(np.float64)
             truth = refine_bench.truth_bounces(case, photo)
             reference = reference_bounces(frames, labels, image)
             for n in range(3):
-                ours[p, n] = block_error(refine_bench.bounce_image(scan, photo, n + 1), truth[n], mask, block)
+                ours[p, n] = block_error(refine_bench.bounce_image(scan, photo, n + 1, dec), truth[n], mask, block)
                 ref[p, n] = block_error(reference[n], truth[n], mask, block)
         rows[len(manifest["beams"])] = {"ilt": ours.tolist(), "reference": ref.tolist()}
         print(f"  {case.name} m = {len(manifest['beams'])}: worst ratio {np.max(ours / ref):.2f}", flush=True)
@@ -112,6 +113,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     noisy_sweep.scan_arguments(ap, "m,occluded,textured,box")
     ap.add_argument("--block", type=int, default=8)
+    ap.add_argument("--photos", default="photos",
+                    help="the photos' directory in each scene's case: photos-mcS or photos-snrX, the noisy photos "
+                         "noisy_sweep.py --photo-samples / --photo-snr decomposed (into each scan's dec-NAME); "
+                         "the truth stays exact")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     frames = noisy_sweep.frames_name(args)
@@ -119,7 +124,7 @@ def main() -> None:
     results = {}
     for scene in args.scenes.split(","):
         m = noisy_sweep.lattice(scene)[0]
-        results[scene] = measure(root / f"{scene}-{m}", frames, args.block)
+        results[scene] = measure(root / f"{scene}-{m}", frames, args.block, args.photos)
         print(table(scene, results[scene]) + "\n", flush=True)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))

@@ -232,8 +232,10 @@ def plot(results: list[dict], per_beam: float, path: Path) -> None:
         for n, style in zip(range(3), ("-o", "-s", "-^")):
             ax.loglog(counts, errors[:, :, n].mean(axis=1), style, label=f"bounce {n + 1} (mean of photos)")
         ax.set_xlabel("beams")
-        ax.set_title(f"{result['scene']} ({result['samples']:g} samples)" if result.get("samples")
-                     else f"{result['scene']} ({result['electrons']:g} e-)")
+        photos = (f", photos {result['photo_samples']:g} samples" if result.get("photo_samples") else
+                  f", photos SNR {result['photo_snr']:g}" if result.get("photo_snr") else "")
+        ax.set_title(f"{result['scene']} ({result['samples']:g} samples{photos})" if result.get("samples")
+                     else f"{result['scene']} ({result['electrons']:g} e-{photos})")
         ax.grid(True, which="both", alpha=0.3)
         ax.set_xticks(counts, [str(c) for c in counts])
         ax.xaxis.set_minor_formatter(NullFormatter())

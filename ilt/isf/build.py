@@ -571,8 +571,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         folds = None
         if fold_cells:
             sum_beams = _sum_beams(spots_dir, beams) if frame_sum is not None else None
+            brightest = None if frame_sum is None else float(np.max(peak if peak is not None else frame_sum))
             labels, folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk,
-                                        frame_sum, sum_beams, fresh)
+                                        frame_sum, sum_beams, fresh, brightest)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
@@ -738,21 +739,26 @@ def _sum_beams(spots_dir: Path, beams: list[int]) -> list[int] | None:
 
 
 def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk, frame_sum=None,
-                sum_beams=None, fresh: float = 0.0) -> tuple[np.ndarray, dict]:
+                sum_beams=None, fresh: float = 0.0, brightest: float | None = None) -> tuple[np.ndarray, dict]:
     """``fold_cells``: the cells ended at the concave folds the frames show
     (:mod:`ilt.isf.folds`), and the manifest's record. The far light is the scan's sum
     (``sum.exr``, whose frames are ``sum_beams``) less each frame's disc about its spot,
     read over the disc's rows only; without that sum, or when the frames' outliers that
     are not at the same pixel in every frame (``fresh``: their share of a frame's pixels,
     fireflies) would stand side by side in it, where the sum cannot tell them, one more pass
-    over the frames, each frame's replaced first."""
-    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, far_chunk, far_counts, far_from_sum, fold_cells, near_chunk, \
-        valley_barriers
+    over the frames, each frame's replaced first. Noise-free frames (``noise`` None) are
+    judged against :func:`ilt.isf.folds.nominal_noise` of ``brightest`` (the frames'
+    brightest pixel), their discs tapered (:func:`ilt.isf.folds.near_chunk`), nothing
+    replaced; without the sum, as without fold cells."""
+    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, NOMINAL_ELECTRONS, far_chunk, far_counts, far_from_sum, \
+        fold_cells, near_chunk, nominal_noise, valley_barriers
 
+    judge = noise
     if noise is None:
-        log.info("fold cells: the frames show no noise to judge folds against (noise-free frames): cells as "
-                 "without them")
-        return labels, {"applied": False, "reason": "no noise model (noise-free frames)"}
+        if frame_sum is None or sum_beams is None or brightest is None or not brightest > 0:
+            log.info("fold cells: noise-free frames and no sum.exr to judge their folds on: cells as without them")
+            return labels, {"applied": False, "reason": "noise-free frames and no sum.exr ('ilt centroids' writes it)"}
+        judge = nominal_noise(brightest)
     spacing = spacing_of(on_grid)
     row = {b: i for i, b in enumerate(plan)}
     light = np.zeros(hdr.frame_shape)
@@ -761,7 +767,8 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
         # the beams the sum holds that build-isf dropped: their whole frames (centre NaN)
         dropped = np.array([np.nan, np.nan])
         tasks = [([hdr.files[b] for b in c], hdr.frame_shape,
-                  np.array([on_grid[row[b]] if b in row else dropped for b in c]).reshape(-1, 2), spacing)
+                  np.array([on_grid[row[b]] if b in row else dropped for b in c]).reshape(-1, 2), spacing,
+                  noise is None)
                  for c in chunks(sum_beams, chunk)]
         with beam_executor(executor, workers) as ex:
             for part in run_chunks(near_chunk, tasks, ex):
@@ -777,12 +784,17 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
             for part in run_chunks(far_chunk, tasks, ex):
                 light += part
         source = "a pass over the frames" + (f" (outliers in {fresh:.2g} of each frame's pixels)" if crowded else "")
-    barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), noise, labels >= 0, spacing)
+    barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), judge, labels >= 0, spacing)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
     log.info("fold cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
              record["barrier_pixels"])
+    if noise is None:
+        source += ", tapered from 1 to 2 spacings"
     return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW,
-                    "far_light": source, **record}
+                    "far_light": source, **record,
+                    **({} if noise is not None else {"noise": f"nominal: noise-free frames judged as with photon "
+                                                              f"noise of {NOMINAL_ELECTRONS:g} e- at their "
+                                                              f"brightest pixel"})}
 
 
 def _outlier_record(clamped: np.ndarray, plan: list[int]) -> dict:

@@ -84,11 +84,19 @@ def far_chunk(files, shape, centres, spacing, noise=None, discs=None):
     return light
 
 
-def near_chunk(files, shape, centres, radius):
+def near_chunk(files, shape, centres, radius, taper: bool = False):
     """Worker: (H, W) float64, the chunk's frames summed within ``radius`` of their own
     spot (``centres``), each read only over the rows of that disc; a centre of NaN: the
     whole frame (a beam build-isf dropped, whose frame the scan's sum holds). The scan's
-    sum less these is the far light (:func:`far_from_sum`) without a second full read."""
+    sum less these is the far light (:func:`far_from_sum`) without a second full read.
+
+    ``taper``: each frame all within ``radius``, none past twice that, and between the share
+    ``1 - smoothstep`` of its distance from ``radius`` to ``2 radius``. The far light then has
+    no step where a frame's disc ends. With the steps, a pixel's far light left out both
+    spots either side of it and took in the next ones: it dipped midway between every two
+    spots by itself, a valley of the lattice's period that noise hides and noise-free frames
+    show (judged against :func:`nominal_noise`, the emulated rig's 16 beams split their cells
+    there, the flashlight's bounce 2 0.07 -> 0.14)."""
     from ilt.io.frames import load_frame, read_frame_rows
 
     light = np.zeros(shape)
@@ -96,11 +104,33 @@ def near_chunk(files, shape, centres, radius):
         if not np.all(np.isfinite(centre)):
             light += load_frame(path, shape)
             continue
-        near = _disc(centre, shape, radius)
+        near = _disc(centre, shape, 2 * radius if taper else radius)
         if near is not None:
             (rows, cols), inside = near
-            light[rows, cols][inside] += read_frame_rows(path, shape, (rows.start, rows.stop))[:, cols][inside]
+            values = read_frame_rows(path, shape, (rows.start, rows.stop))[:, cols]
+            if taper:
+                yy, xx = np.ogrid[rows, cols]
+                t = np.clip((np.hypot(xx - centre[0], yy - centre[1]) - radius) / radius, 0.0, 1.0)
+                values = values * (1.0 - t * t * (3.0 - 2.0 * t))
+            light[rows, cols][inside] += values[inside]
     return light
+
+
+#: noise-free frames have no noise to judge a valley against: they are judged as if they had
+#: photon noise of this many photo-electrons at their brightest pixel (the noisy sweep's,
+#: benchmarks/noisy_sweep.py), so that better frames find at least the folds noisy ones do
+NOMINAL_ELECTRONS = 2e4
+
+
+def nominal_noise(brightest: float):
+    """The noise model noise-free frames' folds are judged against (:data:`NOMINAL_ELECTRONS`
+    at ``brightest``, the frames' brightest pixel): photon noise alone, a pixel's variance
+    ``level * brightest / NOMINAL_ELECTRONS``."""
+    from ilt.isf.noise import FrameNoise
+
+    slope = float(brightest) / NOMINAL_ELECTRONS
+    return FrameNoise(levels=(0.0, float(brightest)), variances=(0.0, slope * float(brightest)), frames=0,
+                      pixels=0, bins=0, slope=slope)
 
 
 def sum_noise(noise, frames: int):
@@ -116,11 +146,12 @@ def far_from_sum(frame_sum: np.ndarray, near: np.ndarray, noise, frames: int) ->
     """The far light from the scan's sum (``sum.exr``) less ``near`` (:func:`near_chunk`),
     its isolated outliers replaced on the sum's noise (a firefly of any frame stands out of
     the sum as of its frame; one too faint to, smoothed by the valley test's Gaussian of at
-    least 2 px, stays under its 3 sigma)."""
+    least 2 px, stays under its 3 sigma); ``noise`` None (noise-free frames): none replaced."""
     from ilt.isf.outliers import clamp_isolated
 
     light = frame_sum - near
-    clamp_isolated(light, sum_noise(noise, frames))
+    if noise is not None:       # noise-free frames: nothing to replace
+        clamp_isolated(light, sum_noise(noise, frames))
     return light
 
 
@@ -414,5 +445,5 @@ def _nearest_region(regions: np.ndarray, pixel: np.ndarray, reach: int) -> int:
     return int(window[rows[k], cols[k]])
 
 
-__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "SUM_OUTLIER_SHARE", "far_chunk", "far_counts", "far_from_sum", "fold_cells", "near_chunk",
-           "spacing_of", "sum_noise", "valley_barriers"]
+__all__ = ["FOLD_LOW", "FOLD_SIGMAS", "NOMINAL_ELECTRONS", "SUM_OUTLIER_SHARE", "far_chunk", "far_counts", "far_from_sum", "fold_cells", "near_chunk",
+           "nominal_noise", "spacing_of", "sum_noise", "valley_barriers"]

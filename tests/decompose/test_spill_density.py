@@ -70,7 +70,9 @@ def scans(tmp_path_factory):
 def test_a_denser_scan_splits_better_once_the_spill_is_out(scans):
     out, error = scans
     sparse_q, dense_q = (load_isf(out[n] / "isf").spill for n in ("sparse", "dense"))
-    assert sparse_q.max() < 0.01                        # 5 spot sigmas apart: hardly any flank to take out
+    # 5 spot sigmas apart: hardly any flank to take out, but where a spot sits on one of the M's
+    # folds, its cell ends there and its flank past the fold is its neighbour's (1.7%)
+    assert sparse_q.max() < 0.02
     assert dense_q.nnz >= 2 * 44 and dense_q.sum() > 10 * sparse_q.sum()   # each spot in both neighbours' cells
     sparse, dense, dense_paper = error("sparse", True), error("dense", True), error("dense", False)
     assert error("sparse", False) == pytest.approx(sparse, rel=0.03)

@@ -144,10 +144,11 @@ def test_a_long_barrier_is_carried_on_along_its_valleys_floor_and_a_branch_is_no
     assert added.sum() == 20 + rows.size
 
 
-def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
-    """Noise-free frames: nothing to judge a valley against, the cells as without the
-    option and the manifest says why. Noisy frames: the same lit pixels, the moved ones
-    counted."""
+def test_build_isf_fold_cells_only_move_pixels_noise_free_or_noisy(tmp_path):
+    """Noise-free frames: judged against the nominal noise, their discs tapered, the manifest
+    says so. Noisy frames: their own noise. Either way the same lit pixels as without the
+    option, the moved ones counted, and the pixels the noise-free frames move lie at the
+    two concave folds the noisy frames' cells end at (columns 104 and 296 of 401)."""
     from ilt.io.exr import read_exr
     from ilt.isf.build import build_isf
     from tests.isf.test_build import run
@@ -156,25 +157,70 @@ def test_build_isf_fold_cells_needs_noise_and_only_moves_pixels(tmp_path):
     sim = tmp_path / "sim"
     run("simulate", "m", "--frames", "--beams", 32, "--px-per-beam", 12, "-o", sim)
     run("centroids", sim / "hdr", "-o", tmp_path / "spots", "--workers", 1)
-    result = run("build-isf", sim / "hdr", tmp_path / "spots", "-o", tmp_path / "clean", "--workers", 1)
-    assert "fold cells: the frames show no noise to judge folds against" in result.output
-    assert "WARNING" not in result.output
-    folds = json.loads((tmp_path / "clean" / "manifest.json").read_text())["folds"]
-    assert folds["applied"] is False and "noise" in folds["reason"]
     noisy = tmp_path / "noisy"
     noisy_frames(sim / "hdr", noisy, np.random.default_rng(3))
     run("centroids", noisy, "-o", tmp_path / "nspots", "--workers", 1)
-    build_isf(noisy, tmp_path / "nspots", tmp_path / "plain", workers=1, fold_cells=False)
-    build_isf(noisy, tmp_path / "nspots", tmp_path / "fold", workers=1)
-    a = read_exr(tmp_path / "plain" / "cells.exr")[0][..., 0]
-    b = read_exr(tmp_path / "fold" / "cells.exr")[0][..., 0]
-    manifest = json.loads((tmp_path / "fold" / "manifest.json").read_text())
-    assert manifest["folds"]["applied"] is True and manifest["parameters"]["fold_cells"] is True
-    assert manifest["folds"]["far_light"] == "sum.exr less each frame's disc"
-    assert np.array_equal(a >= 0, b >= 0)
-    assert manifest["folds"]["moved_pixels"] == int(np.count_nonzero(a != b))
-    plain = json.loads((tmp_path / "plain" / "manifest.json").read_text())
-    assert plain["parameters"]["fold_cells"] is False and "folds" not in plain
+    moved = {}
+    for frames, spots, name in ((sim / "hdr", tmp_path / "spots", "clean"), (noisy, tmp_path / "nspots", "noisy")):
+        build_isf(frames, spots, tmp_path / f"isf-{name}-plain", workers=1, fold_cells=False)
+        build_isf(frames, spots, tmp_path / f"isf-{name}", workers=1)
+        a = read_exr(tmp_path / f"isf-{name}-plain" / "cells.exr")[0][..., 0]
+        b = read_exr(tmp_path / f"isf-{name}" / "cells.exr")[0][..., 0]
+        manifest = json.loads((tmp_path / f"isf-{name}" / "manifest.json").read_text())
+        assert manifest["folds"]["applied"] is True and manifest["parameters"]["fold_cells"] is True
+        assert np.array_equal(a >= 0, b >= 0)
+        assert manifest["folds"]["moved_pixels"] == int(np.count_nonzero(a != b))
+        moved[name] = set(np.nonzero(a != b)[1].tolist())
+        plain = json.loads((tmp_path / f"isf-{name}-plain" / "manifest.json").read_text())
+        assert plain["parameters"]["fold_cells"] is False and "folds" not in plain
+        if name == "clean":
+            assert manifest["folds"]["far_light"] == "sum.exr less each frame's disc, tapered from 1 to 2 spacings"
+            assert manifest["folds"]["noise"].startswith("nominal")
+        else:
+            assert manifest["folds"]["far_light"] == "sum.exr less each frame's disc" and "noise" not in manifest["folds"]
+    assert moved["noisy"] and moved["clean"]
+    assert all(min(abs(c - n) for n in moved["noisy"]) <= 2 for c in moved["clean"])
+
+
+def test_noise_free_frames_tapered_discs_have_no_step(tmp_path):
+    """A frame of ones with its spot at (30, 20), radius 6: the near light is 1 within 6 px,
+    0 past 12, 0.5 at 9 (the smoothstep's middle) and continuous: no two neighbouring pixels
+    differ by more than the smoothstep's steepest slope allows (1.5 / 6 a px, and the
+    diagonal's sqrt 2)."""
+    from ilt.io.exr import write_exr
+    from ilt.isf.folds import near_chunk
+
+    path = write_exr(tmp_path / "beam-00000.exr", np.ones((40, 60), np.float32), ["Y"])
+    hard = near_chunk([path], (40, 60), np.array([[30.0, 20.0]]), 6.0)
+    soft = near_chunk([path], (40, 60), np.array([[30.0, 20.0]]), 6.0, taper=True)
+    rows, cols = np.mgrid[:40, :60]
+    d = np.hypot(cols - 30, rows - 20)
+    np.testing.assert_array_equal(hard, (d <= 6.0).astype(float))
+    np.testing.assert_allclose(soft[d <= 6.0], 1.0)
+    np.testing.assert_array_equal(soft[d >= 12.0], 0.0)
+    assert soft[20, 39] == pytest.approx(0.5)
+    assert np.abs(np.diff(soft, axis=1)).max() <= 1.5 / 6 * np.sqrt(2) + 1e-9
+    assert np.abs(np.diff(hard, axis=1)).max() == 1.0
+
+
+def test_a_noise_free_valley_is_found_against_the_nominal_noise_and_smooth_light_moves_no_pixel():
+    """The slanted valley of the noisy test, noise-free, judged against the nominal noise
+    of frames whose brightest pixel is 100 times the far light's (a laser spot over the
+    interreflected light): found along its line to 1 px; the same light without it moves no
+    pixel of cells on a grid."""
+    from ilt.isf.cells import voronoi_cells
+    from ilt.isf.folds import nominal_noise
+
+    y, x = np.mgrid[:160, :200].astype(np.float64)
+    per_frame = 30.0 + 10.0 * np.exp(-((x - 120) ** 2 + (y - 90) ** 2) / (2 * 60.0**2))
+    distance = np.abs(y - 0.5 * x - 40) / np.hypot(1, 0.5)
+    count, lit, noise = np.full((160, 200), 100.0), np.ones((160, 200), bool), nominal_noise(4000.0)
+    barriers = valley_barriers(100 * per_frame * np.minimum(1.0, 0.3 + distance / 12.0), count, noise, lit, 16.0)
+    assert np.unique(np.nonzero(barriers & (distance < 1.0))[1]).size >= 0.95 * 200
+    stray = valley_barriers(100 * per_frame, count, noise, lit, 16.0)
+    gx, gy = np.meshgrid(np.arange(8.0, 200, 16), np.arange(8.0, 160, 16))
+    centroids = np.column_stack([gx.ravel(), gy.ravel()])
+    assert fold_cells(voronoi_cells(centroids, (160, 200)), centroids, stray, 16.0)[1]["moved_pixels"] == 0
 
 
 def test_far_counts_are_the_frames_whose_spot_is_beyond_a_spacing():

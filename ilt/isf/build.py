@@ -568,12 +568,12 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                         "('ilt centroids' writes it)", spots_dir / SUM_FILE, max_cell_radius)
         # the pool idles meanwhile: the queries take its cores
         labels = voronoi_cells(on_grid, hdr.frame_shape, lit, max_cell_radius, threads=workers or -1)
-        folds = None
+        folds = at_folds = None
         if fold_cells:
             sum_beams = _sum_beams(spots_dir, beams) if frame_sum is not None else None
             brightest = None if frame_sum is None else float(np.max(peak if peak is not None else frame_sum))
-            labels, folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk,
-                                        frame_sum, sum_beams, fresh, brightest)
+            labels, folds, at_folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers,
+                                                  chunk, frame_sum, sum_beams, fresh, brightest)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
@@ -628,7 +628,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             accumulator = FineAccumulator(
                 np.lib.format.open_memmap(tmp / FINE_DIR / COEFFICIENTS_FILE, mode="w+", dtype=np.float32,
                                           shape=(terms, m, m)),
-                CellGeometry.from_labels(labels, m), fine_degree, noise_aware=noise is not None)
+                CellGeometry.from_labels(labels, m), fine_degree, noise_aware=noise is not None, keep_flat=at_folds)
         # noise that is a share of each pixel's light (a path tracer's): each spot's own cell
         # gets its variance from its pixels' squares, which the fine fit's pass sums
         light_share = light_share_variance(noise) if noise is not None and fine_degree else 0.0
@@ -739,7 +739,7 @@ def _sum_beams(spots_dir: Path, beams: list[int]) -> list[int] | None:
 
 
 def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chunk, frame_sum=None,
-                sum_beams=None, fresh: float = 0.0, brightest: float | None = None) -> tuple[np.ndarray, dict]:
+                sum_beams=None, fresh: float = 0.0, brightest: float | None = None):
     """``fold_cells``: the cells ended at the concave folds the frames show
     (:mod:`ilt.isf.folds`), and the manifest's record. The far light is the scan's sum
     (``sum.exr``, whose frames are ``sum_beams``) less each frame's disc about its spot,
@@ -749,15 +749,18 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     over the frames, each frame's replaced first. Noise-free frames (``noise`` None) are
     judged against :func:`ilt.isf.folds.nominal_noise` of ``brightest`` (the frames'
     brightest pixel), their discs tapered (:func:`ilt.isf.folds.near_chunk`), nothing
-    replaced; without the sum, as without fold cells."""
-    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, NOMINAL_ELECTRONS, far_chunk, far_counts, far_from_sum, \
-        fold_cells, near_chunk, nominal_noise, valley_barriers
+    replaced; without the sum, as without fold cells. Returns the labels, the record and the
+    cells at a barrier, which keep no plane of their own (:func:`ilt.isf.folds.cells_at_barriers`;
+    None when not applied)."""
+    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, NOMINAL_ELECTRONS, cells_at_barriers, far_chunk, far_counts, \
+        far_from_sum, fold_cells, near_chunk, nominal_noise, valley_barriers
 
     judge = noise
     if noise is None:
         if frame_sum is None or sum_beams is None or brightest is None or not brightest > 0:
             log.info("fold cells: noise-free frames and no sum.exr to judge their folds on: cells as without them")
-            return labels, {"applied": False, "reason": "noise-free frames and no sum.exr ('ilt centroids' writes it)"}
+            return labels, {"applied": False, "reason": "noise-free frames and no sum.exr ('ilt centroids' writes it)"}, \
+                None
         judge = nominal_noise(brightest)
     spacing = spacing_of(on_grid)
     row = {b: i for i, b in enumerate(plan)}
@@ -786,15 +789,16 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
         source = "a pass over the frames" + (f" (outliers in {fresh:.2g} of each frame's pixels)" if crowded else "")
     barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), judge, labels >= 0, spacing)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
+    at_folds = cells_at_barriers(labels, barriers)
     log.info("fold cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
              record["barrier_pixels"])
     if noise is None:
         source += ", tapered from 1 to 2 spacings"
     return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW,
-                    "far_light": source, **record,
+                    "far_light": source, **record, "flat_cells": int(at_folds.size),
                     **({} if noise is not None else {"noise": f"nominal: noise-free frames judged as with photon "
                                                               f"noise of {NOMINAL_ELECTRONS:g} e- at their "
-                                                              f"brightest pixel"})}
+                                                              f"brightest pixel"})}, at_folds
 
 
 def _outlier_record(clamped: np.ndarray, plan: list[int]) -> dict:

@@ -197,8 +197,11 @@ class FineAccumulator:
     (the coefficients themselves bit for bit).
     """
 
-    def __init__(self, out: np.ndarray, geometry: CellGeometry, degree: int, noise_aware: bool = False):
+    def __init__(self, out: np.ndarray, geometry: CellGeometry, degree: int, noise_aware: bool = False,
+                 keep_flat: np.ndarray | None = None):
         self.out, self.degree, self.noise_aware = out, degree, noise_aware
+        # cells that take their neighbours' slope whatever their fit (at folds: ilt.isf.folds.cells_at_barriers)
+        self.keep_flat = np.empty(0, np.int64) if keep_flat is None else np.asarray(keep_flat, np.int64)
         self.gram = geometry.gram(degree)                               # (m, K, K)
         self.area = np.maximum(geometry.area, 1.0)
         m = geometry.m
@@ -247,13 +250,16 @@ class FineAccumulator:
         varies by no more than that many spreads of the noise's own variation: there the
         share divides by a difference of two sums that noise makes alike, and reads noise
         (photon and read noise: the M's 48-beam scan 6% better, the textured M's 96 1%, the rest
-        within 0.0006; photon noise alone and a path tracer's within 0.4%)."""
+        within 0.0006; photon noise alone and a path tracer's within 0.4%). And so are the
+        cells given as ``keep_flat`` (those at a fold)."""
         explained, total = self.explained - self.noise_explained, self.total - self.noise_total
         share = np.where(total > 0, explained / np.where(total > 0, total, 1.0), 1.0)
         if self.noise_aware:
             resolved = (explained > NOISE_SIGMAS * np.sqrt(self.noise_spread)) & \
                 (total > NOISE_SIGMAS * np.sqrt(self.noise_total_spread))
             share = np.where(resolved, share, np.minimum(share, 0.0))
+        if self.keep_flat.size:
+            share[self.keep_flat] = np.minimum(share[self.keep_flat], 0.0)
         flat = np.flatnonzero(share < MIN_EXPLAINED)
         if flat.size:
             self.out[:, flat, :] = 0.0

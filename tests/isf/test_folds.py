@@ -223,6 +223,21 @@ def test_a_noise_free_valley_is_found_against_the_nominal_noise_and_smooth_light
     assert fold_cells(voronoi_cells(centroids, (160, 200)), centroids, stray, 16.0)[1]["moved_pixels"] == 0
 
 
+def test_the_cells_at_a_barrier_are_those_within_its_reach():
+    """Cells of 10 columns each (0, 1, 2 over columns 0-29, and pixels outside every cell
+    at columns 30-34): a barrier on column 12 reaches columns 10-14 (2 px): cell 1 alone; on
+    column 9, columns 7-11: cells 0 and 1; on column 32, the pixels outside only: none."""
+    from ilt.isf.folds import FOLD_FLAT_PX, cells_at_barriers
+
+    labels = np.repeat(np.r_[np.repeat([0, 1, 2], 10), np.full(5, -1)][None, :], 6, axis=0)
+    assert FOLD_FLAT_PX == 2
+    for column, cells in ((12, [1]), (9, [0, 1]), (32, [])):
+        barriers = np.zeros(labels.shape, bool)
+        barriers[:, column] = True
+        assert cells_at_barriers(labels, barriers).tolist() == cells
+    assert cells_at_barriers(labels, np.zeros(labels.shape, bool)).size == 0
+
+
 def test_far_counts_are_the_frames_whose_spot_is_beyond_a_spacing():
     from ilt.isf.folds import far_counts
 

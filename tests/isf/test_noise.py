@@ -206,6 +206,19 @@ def test_the_fine_fit_tells_a_slope_from_noise():
     assert clean[1] == pytest.approx(1.0)
 
 
+def test_a_cell_at_a_fold_keeps_no_plane_of_its_own():
+    """The noise-free planar cell (share 1, its slope kept) given as ``keep_flat``: its
+    coefficients are zeroed and its share is under MIN_EXPLAINED; the other cell as it was."""
+    rng = np.random.default_rng(4)
+    free = _two_cells(rng, slope=0.3, pixel_sigma=0.0)
+    assert free.finish()[1] == pytest.approx(1.0) and np.any(free.out[:, 1, :] != 0)
+    kept = _two_cells(np.random.default_rng(4), slope=0.3, pixel_sigma=0.0)
+    kept.keep_flat = np.array([1])
+    share = kept.finish()
+    assert share[1] < MIN_EXPLAINED and np.all(kept.out[:, 1, :] == 0)
+    np.testing.assert_array_equal(kept.out[:, 0, :], free.out[:, 0, :])
+
+
 def test_a_cell_whose_light_varies_within_its_noise_is_kept_flat():
     """A slope whose light varies across the cell by about the spread of the noise's own
     variation (slope 0.05 under noise 1: 37-121 against a spread of 34): the share divides

@@ -79,7 +79,7 @@ def measure(case: Path, frames_name: str, block: int, photos: str = "photos") ->
     scans = sorted((case / f"scans-{frames_name}").glob("sweep-*"), key=lambda p: int(p.name.split("-")[1]))
     scans = [s for s in scans if s.name.split("-")[1].isdigit() and len(s.name.split("-")) == 2]
     mask = refine_bench.covered(scans[0], cells_only=True)
-    dec = "dec" if photos == "photos" else f"dec-{photos}"   # noisy_sweep.py --photo-samples / --photo-snr
+    dec = noisy_sweep.dec_name(photos)      # noisy_sweep.py --photo-samples / --photo-snr
     rows = {}
     for scan in scans:
         manifest = json.loads((scan / "isf" / "manifest.json").read_text())

@@ -118,7 +118,7 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
     dec = "dec"
     if photo_samples > 0 or photo_snr > 0:   # every scan decomposes the same noisy photos, judged against the exact bounces
         photos = noisy_photos(case, photo_samples, photo_snr)
-        dec = f"dec-{photos.name}"
+        dec = dec_name(photos.name)
         for w in where.values():
             if not (w / dec).exists():
                 refine_bench.run("decompose", "--isf", w / "isf", *[photos / f"{p}.exr" for p in PHOTOS],
@@ -135,6 +135,12 @@ def sweep(root: Path, scene: str, electrons: float, rng, spot_px: float | None =
             "photo_samples": photo_samples, "photo_snr": photo_snr,
             "keep_covered": keep_covered,
             "base_pixels": int(mask.sum()), "scans": rows}
+
+
+def dec_name(photos: str) -> str:
+    """A scan's decompose directory for the case's photos directory ``photos``: ``dec`` for the
+    exact ``photos``, ``dec-NAME`` for the noisy ones (:func:`noisy_photos`)."""
+    return "dec" if photos == "photos" else f"dec-{photos}"
 
 
 def noisy_photos(case: Path, samples: float = 0.0, snr: float = 0.0) -> Path:

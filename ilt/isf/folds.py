@@ -325,7 +325,7 @@ def cells_at_barriers(labels: np.ndarray, barriers: np.ndarray, reach: int = FOL
     noise and its filters) its pixels over the fold hold another facet's light, and the
     plane fitted through them tilts. Kept flat (fine fit), the noise-free M at 48-192 beams
     was 6 / 3 / 9% better, with ten times the sweep's light 6 / 13 / 7%, the box within
-    0.5% (docs/fullres.md)."""
+    0.7% (docs/fullres.md)."""
     from scipy.ndimage import binary_dilation
 
     if not barriers.any():

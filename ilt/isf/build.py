@@ -752,7 +752,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     replaced; without the sum, as without fold cells. Returns the labels, the record and the
     cells at a barrier, which keep no plane of their own (:func:`ilt.isf.folds.cells_at_barriers`;
     None when not applied)."""
-    from ilt.isf.folds import FOLD_LOW, FOLD_SIGMAS, NOMINAL_ELECTRONS, cells_at_barriers, far_chunk, far_counts, \
+    from ilt.isf.folds import FOLD_DEPTH, FOLD_LOW, FOLD_SIGMAS, NOMINAL_ELECTRONS, cells_at_barriers, far_chunk, far_counts, \
         far_from_sum, fold_cells, near_chunk, nominal_noise, valley_barriers
 
     judge = noise
@@ -787,7 +787,9 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
             for part in run_chunks(far_chunk, tasks, ex):
                 light += part
         source = "a pass over the frames" + (f" (outliers in {fresh:.2g} of each frame's pixels)" if crowded else "")
-    barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), judge, labels >= 0, spacing)
+    valleys = {}
+    barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), judge, labels >= 0, spacing,
+                               valleys)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
     at_folds = cells_at_barriers(labels, barriers)
     log.info("fold cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
@@ -795,7 +797,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     if noise is None:
         source += ", tapered from 1 to 2 spacings"
     return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW,
-                    "far_light": source, **record, "flat_cells": int(at_folds.size),
+                    "depth": FOLD_DEPTH, **valleys, "far_light": source, **record, "flat_cells": int(at_folds.size),
                     **({} if noise is not None else {"noise": f"nominal: noise-free frames judged as with photon "
                                                               f"noise of {NOMINAL_ELECTRONS:g} e- at their "
                                                               f"brightest pixel"})}, at_folds

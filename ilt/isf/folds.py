@@ -16,7 +16,13 @@ has no such use (no ``sum.exr``, a dark frame taken off it, fireflies crowding i
 :func:`valley_barriers` smooths that light by a Gaussian of a quarter spacing and takes the
 larger eigenvalue of its Hessian, over its noise (the frames' noise model through the same
 filters). Barriers are its ridge pixels (local maxima across the valley) above
-:data:`FOLD_LOW` sigma, connected to ones above :data:`FOLD_SIGMAS`. :func:`fold_cells`
+:data:`FOLD_LOW` sigma, connected to ones above :data:`FOLD_SIGMAS`, whose light lies
+:data:`FOLD_DEPTH` or more below the light a spot spacing either side (:func:`valley_depth`,
+the median along the line). The far light has shallow dips of its own, one a spacing, where
+each frame's disc ends: frames bright enough, or noise-free ones judged against a nominal
+noise, show them far above their noise, and on the M at 16 beams (spots 32 px apart) they
+split 8 of its 16 cells midway between spots and along the spots' row (depth 0.01-0.13,
+the folds 0.68-0.74; the M's folds at 48-384 beams 0.37-0.82). :func:`fold_cells`
 gives each pixel to the nearest spot in its own region of the lit mask that the barriers
 leave (4-connected), except each spot's own disc, which stays its own (a barrier between
 a spot 2 px from a fold and its own pixels gave them to the neighbour); a spot on a barrier
@@ -37,6 +43,9 @@ import numpy as np
 FOLD_SIGMAS = 4.5
 #: ... and this many everywhere
 FOLD_LOW = 3.0
+#: ... and its light lies this share below the mean of the light a spot spacing either side
+#: across it (the median along the line; :func:`valley_depth`)
+FOLD_DEPTH = 0.15
 #: the far light is the scan's sum less each frame's disc unless the frames' fireflies
 #: (:func:`ilt.isf.outliers.fresh_outliers`, times the frames summed) would be this share of
 #: its pixels: past it they stand side by side there, where the isolated test cannot tell
@@ -44,6 +53,9 @@ FOLD_LOW = 3.0
 SUM_OUTLIER_SHARE = 1e-3
 #: the Gaussian's sigma as a share of the spot spacing, and its bounds (px)
 SMOOTH_SHARE, SMOOTH_MIN, SMOOTH_MAX = 0.25, 2.0, 8.0
+#: the depth (:func:`valley_depth`) is read on the light smoothed by that share of the
+#: spacing down to this (px), not :data:`SMOOTH_MIN`
+DEPTH_SMOOTH_MIN = 1.0
 #: a long barrier's ends carried on along its valley's floor where that is this many
 #: sigmas above the noise, up to this many spot spacings and within this many px of its
 #: axis (:func:`_follow`)
@@ -179,9 +191,12 @@ def far_counts(centroids: np.ndarray, shape, spacing: float) -> np.ndarray:
     return count
 
 
-def valley_barriers(light: np.ndarray, count: np.ndarray, noise, lit: np.ndarray, spacing: float) -> np.ndarray:
-    """(H, W) bool: the ridge pixels of the far light's valleys (module docstring), inside ``lit``."""
-    from scipy.ndimage import gaussian_filter, label
+def valley_barriers(light: np.ndarray, count: np.ndarray, noise, lit: np.ndarray, spacing: float,
+                    record: dict | None = None) -> np.ndarray:
+    """(H, W) bool: the ridge pixels of the far light's valleys (module docstring), inside
+    ``lit``. ``record``: a dict given gets ``shallow_lines``, how many lines stood above the
+    noise but were shallower than :data:`FOLD_DEPTH` (:func:`valley_depth`)."""
+    from scipy.ndimage import gaussian_filter, label, median
 
     sigma = float(np.clip(SMOOTH_SHARE * spacing, SMOOTH_MIN, SMOOTH_MAX))
     smooth = gaussian_filter(light, sigma)
@@ -209,10 +224,44 @@ def valley_barriers(light: np.ndarray, count: np.ndarray, noise, lit: np.ndarray
     keep = np.zeros(regions.max() + 1, bool)
     keep[np.unique(regions[strong])] = True
     keep[0] = False
+    # a fold's valley is deep, the lattice's own dimples are not (module docstring): each
+    # line kept only if its median depth is FOLD_DEPTH or more
+    lines = np.flatnonzero(keep)
+    shallow = 0
+    if lines.size:
+        rows, cols = np.nonzero(keep[regions])
+        # read on the light smoothed by a quarter spacing, under the test's 2 px where the
+        # spots are closer than 8 px: there a fold's valley is as narrow as a spacing
+        fine = SMOOTH_SHARE * spacing
+        light_at = smooth if fine >= sigma else gaussian_filter(light, max(fine, DEPTH_SMOOTH_MIN))
+        depth = valley_depth(light_at, rows, cols, theta[rows, cols], spacing)
+        low = lines[np.atleast_1d(median(depth, regions[rows, cols], lines)) < FOLD_DEPTH]
+        keep[low] = False
+        shallow = int(low.size)
+    if record is not None:
+        record["shallow_lines"] = shallow
     barriers = keep[regions]
     _follow(barriers, ridge & lit & (z > FOLD_FOLLOW), z, LONG_SPACINGS * spacing,
             int(np.ceil(FOLLOW_SPACINGS * spacing)))
     return barriers
+
+
+def valley_depth(smooth: np.ndarray, rows: np.ndarray, cols: np.ndarray, theta: np.ndarray, spacing: float) -> np.ndarray:
+    """(n,) float64: how far the ``smooth`` light at each pixel (``rows``, ``cols``) lies
+    below the mean of the light one ``spacing`` either side of it across the valley (along
+    ``theta``, the direction of the Hessian's larger eigenvalue, bilinear, clipped to the
+    frame): 1 - light / that mean. A straight ramp is 0 at any distance, and so is a ripple
+    with the spots' period: the dips the far light makes by itself where each frame's disc
+    ends, one a spacing, which noise-free or bright frames show far above their noise."""
+    from scipy.ndimage import map_coordinates
+
+    height, width = smooth.shape
+    rim = np.zeros(len(rows))
+    for sign in (1.0, -1.0):
+        r = np.clip(rows + sign * spacing * np.sin(theta), 0, height - 1)
+        c = np.clip(cols + sign * spacing * np.cos(theta), 0, width - 1)
+        rim += 0.5 * map_coordinates(smooth, [r, c], order=1)
+    return 1.0 - smooth[rows, cols] / np.maximum(rim, 1e-300)
 
 
 def _follow(barriers: np.ndarray, floor: np.ndarray, z: np.ndarray, extent: float, steps: int) -> None:
@@ -466,5 +515,5 @@ def _nearest_region(regions: np.ndarray, pixel: np.ndarray, reach: int) -> int:
     return int(window[rows[k], cols[k]])
 
 
-__all__ = ["FOLD_FLAT_PX", "FOLD_LOW", "FOLD_SIGMAS", "NOMINAL_ELECTRONS", "SUM_OUTLIER_SHARE", "cells_at_barriers", "far_chunk", "far_counts", "far_from_sum", "fold_cells", "near_chunk",
-           "nominal_noise", "spacing_of", "sum_noise", "valley_barriers"]
+__all__ = ["DEPTH_SMOOTH_MIN", "FOLD_DEPTH", "FOLD_FLAT_PX", "FOLD_LOW", "FOLD_SIGMAS", "NOMINAL_ELECTRONS", "SUM_OUTLIER_SHARE", "cells_at_barriers", "far_chunk", "far_counts", "far_from_sum", "fold_cells", "near_chunk",
+           "nominal_noise", "spacing_of", "sum_noise", "valley_barriers", "valley_depth"]

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from ilt.isf.folds import fold_cells, valley_barriers
+from ilt.isf.folds import fold_cells, nominal_noise, valley_barriers, valley_depth
 from ilt.isf.noise import FrameNoise
 
 GAIN = 4.0
@@ -62,7 +62,6 @@ def test_cells_end_at_a_barrier_and_each_spot_keeps_its_disc():
     assert np.all(out[disc] == 0)
     assert np.all(out[:, 52] == labels[:, 52])              # the barrier's own pixels: as they were
     assert record["moved_pixels"] == int(np.count_nonzero(out != labels)) > 0
-
 
 
 def test_a_spot_on_a_barrier_keeps_its_cell_on_its_side():
@@ -221,6 +220,67 @@ def test_a_noise_free_valley_is_found_against_the_nominal_noise_and_smooth_light
     gx, gy = np.meshgrid(np.arange(8.0, 200, 16), np.arange(8.0, 160, 16))
     centroids = np.column_stack([gx.ravel(), gy.ravel()])
     assert fold_cells(voronoi_cells(centroids, (160, 200)), centroids, stray, 16.0)[1]["moved_pixels"] == 0
+
+
+def test_the_lattices_own_dimples_are_no_fold_but_a_deep_valley_is(monkeypatch):
+    """Noise-free far light with a dip of 8% in every spot spacing (16 px, the dips 5 px from
+    each spot) and along the spots' row, as the far light makes by itself where discs end:
+    far above the nominal noise, so the noise test alone makes barriers of it (the M at 16
+    beams split 8 of its cells so); they are 8% deep (1 - light / the light a spacing
+    either side), under FOLD_DEPTH, and no pixel moves. A V-shaped fold (70% deep) across
+    the same ripple is found along its column."""
+    import ilt.isf.folds as folds
+    from ilt.isf.cells import voronoi_cells
+
+    shape = (48, 200)
+    y, x = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    gx, gy = np.meshgrid(np.arange(8.0, 200, 16), np.array([24.0]))
+    centroids = np.column_stack([gx.ravel(), gy.ravel()])
+    dip = np.abs(((x - 13) % 16))
+    dip = np.minimum(dip, 16 - dip)                                 # px to the nearest dip: 5 px right of a spot
+    ripple = (1 - 0.08 * np.exp(-dip**2 / 8.0)) * (1 - 0.08 * np.exp(-(y - 24) ** 2 / 8.0))
+    light = 3000.0 * (1 + x / 400.0) * ripple
+    count, lit, noise = np.full(shape, 12.0), np.ones(shape, bool), nominal_noise(1e5)
+    labels = voronoi_cells(centroids, shape)
+    record = {}
+    assert not valley_barriers(light, count, noise, lit, 16.0, record).any()
+    assert record["shallow_lines"] >= 1
+    monkeypatch.setattr(folds, "FOLD_DEPTH", -np.inf)               # the noise test alone
+    stray = valley_barriers(light, count, noise, lit, 16.0)
+    assert fold_cells(labels, centroids, stray, 16.0)[1]["moved_pixels"] > 100
+    monkeypatch.undo()
+    fold = light * np.minimum(1.0, 0.3 + np.abs(x - 101.0) / 12.0)   # between spots 88 and 104
+    barriers = valley_barriers(fold, count, noise, lit, 16.0)
+    assert set(np.unique(np.nonzero(barriers)[1])) <= {100, 101, 102}
+    assert np.count_nonzero(barriers.any(axis=1)) == shape[0]
+    # the depth: a ramp times the ripple of the spots' period is 0 wherever it is measured
+    # (a spacing either side lands on the same phase); the V, smoothed as the test smooths
+    # it (4 px), under the raw V's 0.7 but well over FOLD_DEPTH
+    from scipy.ndimage import gaussian_filter
+    r, c = np.mgrid[8:40, 20:180].reshape(2, -1)
+    assert np.abs(valley_depth(light, r, c, np.zeros(r.size), 16.0)).max() < 1e-9
+    rows = np.arange(shape[0])
+    depth = valley_depth(gaussian_filter(fold, 4.0), rows, np.full(shape[0], 101), np.zeros(shape[0]), 16.0)
+    assert np.all((depth > 0.35) & (depth < 0.7)), depth
+
+
+def test_a_fold_as_narrow_as_a_dense_scans_spacing_is_deep_enough(monkeypatch):
+    """Spots 4 px apart (the M's 768 beams): a fold's valley in the far light is as narrow as
+    a spacing (here 40% deep, 3 px to either side). Read on the light smoothed as the valley
+    test smooths it (2 px, its least) it is 0.09 deep, under FOLD_DEPTH; read on a quarter
+    spacing's smoothing (1 px) 0.19: kept, along its column."""
+    import ilt.isf.folds as folds
+
+    shape = (48, 200)
+    y, x = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    light = 3000.0 * (1 + x / 400.0) * np.minimum(1.0, 0.6 + np.abs(x - 101.0) / 3.0)
+    count, lit, noise = np.full(shape, 100.0), np.ones(shape, bool), nominal_noise(1e5)
+    record = {}
+    barriers = valley_barriers(light, count, noise, lit, 4.0, record)
+    assert np.unique(np.nonzero(barriers)[1]).tolist() == [101] and barriers[:, 101].all()
+    assert record["shallow_lines"] == 0
+    monkeypatch.setattr(folds, "DEPTH_SMOOTH_MIN", folds.SMOOTH_MIN)
+    assert not valley_barriers(light, count, noise, lit, 4.0, record).any() and record["shallow_lines"] == 1
 
 
 def test_the_cells_at_a_barrier_are_those_within_its_reach():

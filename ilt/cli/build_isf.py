@@ -44,7 +44,9 @@ from ilt.workspace.options import BUILD_ISF
 @stage_option(BUILD_ISF["fold_cells"], show_default=True,
               help="End the cells at the scene's concave folds, where the light of the beams farther than a "
                    "spot spacing has a valley above the frames' noise (frames without noise: above the photon "
-                   "noise of 2e4 e- at their brightest pixel, each frame's disc tapered off to 2 spacings). It "
+                   "noise of 2e4 e- at their brightest pixel, each frame's disc tapered off to 2 spacings) and "
+                   "at least 15% below that light a spacing either side (the dips it makes by itself, once a "
+                   "spacing, are shallower). It "
                    "reads each frame again over its spot's rows only (docs/fullres.md, 'A spot on a fold').")
 @click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",
               help="An earlier build of the same scene and camera (its ISF directory, or its cells.exr): every "

@@ -64,7 +64,7 @@ from ilt.isf.noise import (
 )
 from ilt.isf.spill import SPILL_FILE, spill_matrix, spot_spill, spot_windows
 from ilt.parallel.chunks import beam_executor, chunks, run_chunks
-from ilt.spots.stage import INDIRECT_SUM_FILE, PEAK_FILE, PEAK_SMOOTH, SUM_FILE
+from ilt.spots.stage import INDIRECT_SUM_FILE, PEAK_FILE, PEAK_SMOOTH, SUM_FILE, inside_mean
 from ilt.spots.table import SPOTS_FILE, format_flags, read_spots
 
 log = logging.getLogger(__name__)
@@ -276,10 +276,7 @@ def _window_means(image: np.ndarray, size: int, corners: bool = True):
     half = size // 2
     height, width = image.shape
     if not corners and height >= size and width >= size:
-        centred = uniform_filter(image, size=size, mode="constant")    # right where the window is inside
-        rows = np.clip(np.arange(height), half, height - 1 - half)
-        cols = np.clip(np.arange(width), half, width - 1 - half)
-        yield centred[np.ix_(rows, cols)], float(size)
+        yield inside_mean(image, size), float(size)
         return
     # the window centred on each pixel of the image padded by ``half``: a corner window of
     # a pixel is the centred one of its diagonal neighbour ``half`` away (one filter, four

@@ -34,6 +34,26 @@ SPOT_SIGMAS = 3.0
 OVERLAY_FILE = "overlay.png"
 
 
+def inside_mean(image: np.ndarray, size: int) -> np.ndarray:
+    """(H, W) the mean of the ``size`` x ``size`` window about each pixel, the window moved
+    inside the image whole where it would cross the edge (an edge pixel takes the mean of
+    the window next to it). A padded window counts the edge pixels many times and their
+    noise with it: with ``mode="nearest"`` a corner's 5 x 5 mean held the noise of 5 pixels,
+    not 25, and the largest of a scan's frames' means (``peak.exr``) lit specks of pure
+    noise at the frame's corners and edges in build-isf's lit test. An image smaller than
+    the window: padded as before."""
+    from scipy.ndimage import uniform_filter
+
+    height, width = image.shape
+    if height < size or width < size:
+        return uniform_filter(image, size=size, mode="nearest")
+    half = size // 2
+    mean = uniform_filter(image, size=size, mode="constant")      # right where the window is inside
+    rows = np.clip(np.arange(height), half, height - 1 - half)
+    cols = np.clip(np.arange(width), half, width - 1 - half)
+    return mean[np.ix_(rows, cols)]
+
+
 def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scratch=None):
     """Worker: spots of a chunk of frames (full-frame pixels), the chunk's pixelwise sum
     (H, W) float32 on the frame grid and its pixelwise largest local mean (``peak.exr``),
@@ -45,8 +65,6 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
     :class:`ilt.io.frames.FrameScratch` where each frame is also written for a following
     build-isf, so that a combined run decodes every EXR once.
     """
-    from scipy.ndimage import uniform_filter
-
     spots, total, peak, indirect, mapping, kept = [], None, None, None, None, []
     fd = scratch.open(write=True) if scratch is not None else None
     try:
@@ -69,8 +87,7 @@ def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scrat
             total += frame
             indirect += frame
             _take_spot(indirect, frame, spot, grid_params.threshold)
-            np.maximum(peak, uniform_filter(frame.astype(np.float32, copy=False), PEAK_SMOOTH, mode="nearest"),
-                       out=peak)
+            np.maximum(peak, inside_mean(frame.astype(np.float32, copy=False), PEAK_SMOOTH), out=peak)
             if fd is not None:
                 if _keep_frame(scratch, fd, beam, frame):
                     kept.append(beam)
@@ -276,7 +293,8 @@ def run_centroids(hdr_dir: str | os.PathLike, out: str | os.PathLike, params: Sp
         write_spots(tmp / SPOTS_FILE, beams, spots)
         write_exr(tmp / SUM_FILE, total, attributes={"ilt:quantity": "sum of beam frames", **mapping.attributes()})
         write_exr(tmp / PEAK_FILE, peak, attributes={
-            "ilt:quantity": f"largest over the beam frames of the {PEAK_SMOOTH} x {PEAK_SMOOTH} mean",
+            "ilt:quantity": f"largest over the beam frames of the {PEAK_SMOOTH} x {PEAK_SMOOTH} mean "
+                             f"(windows moved inside at the frame's edge)",
             **mapping.attributes()})
         write_exr(tmp / INDIRECT_SUM_FILE, indirect, attributes={
             "ilt:quantity": f"sum of beam frames, each without its spot's disc ({SPOT_SIGMAS:g} sigma)",

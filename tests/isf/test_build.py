@@ -208,6 +208,32 @@ def test_the_lit_test_leaves_out_what_only_noise_lights():
     assert np.array_equal(clean, truth > 0.1) and info["noise_sigma"] == 0.0
 
 
+def test_the_largest_frames_mean_lights_no_noise_at_the_frames_edges():
+    """The peak test (peak.exr: the largest of the frames' 5 x 5 means, ilt.spots.stage) on
+    200 frames of pure noise (sigma 1), judged with the noise of a 25-pixel mean: no pixel
+    lit, at the edges either. With the windows padded (the edge pixels repeated, as before)
+    a corner's mean held the noise of 5 pixels, not 25, and the largest of 200 lit specks
+    at the frame's corners. inside_mean: an edge pixel takes the mean of the window next to
+    it, exactly."""
+    from scipy.ndimage import uniform_filter
+
+    from ilt.isf.build import LIT_SIGMAS, _peak_test
+    from ilt.spots.stage import PEAK_SMOOTH, inside_mean
+
+    rng = np.random.default_rng(4)
+    frames = rng.normal(0.0, 1.0, (200, 24, 40))
+    mean = inside_mean(frames[0], PEAK_SMOOTH)
+    assert mean[0, 0] == pytest.approx(frames[0, :5, :5].mean()) and mean[23, 39] == pytest.approx(frames[0, -5:, -5:].mean())
+    assert mean[10, 20] == pytest.approx(frames[0, 8:13, 18:23].mean())
+    spots = np.array([[20.0, 12.0]])
+    noise = 1.0 / PEAK_SMOOTH
+    inside = np.max([inside_mean(f, PEAK_SMOOTH) for f in frames], axis=0)
+    assert not _peak_test(inside, spots[:, 1].astype(int), spots[:, 0].astype(int), 1e-4, LIT_SIGMAS, noise, 200).any()
+    padded = np.max([uniform_filter(f, PEAK_SMOOTH, mode="nearest") for f in frames], axis=0)
+    specks = _peak_test(padded, spots[:, 1].astype(int), spots[:, 0].astype(int), 1e-4, LIT_SIGMAS, noise, 200)
+    assert specks.any() and not specks[3:-3, 3:-3].any()
+
+
 def test_executor_is_pluggable_and_gives_the_same_T(runs, tmp_path):
     root, sim = runs[16]
     with ThreadPoolExecutor(2) as ex:

@@ -49,9 +49,12 @@ def inside_mean(image: np.ndarray, size: int) -> np.ndarray:
         return uniform_filter(image, size=size, mode="nearest")
     half = size // 2
     mean = uniform_filter(image, size=size, mode="constant")      # right where the window is inside
-    rows = np.clip(np.arange(height), half, height - 1 - half)
-    cols = np.clip(np.arange(width), half, width - 1 - half)
-    return mean[np.ix_(rows, cols)]
+    if half:                                                      # the edge bands take the nearest inside one
+        mean[:half] = mean[half]
+        mean[height - half:] = mean[height - half - 1]
+        mean[:, :half] = mean[:, half:half + 1]
+        mean[:, width - half:] = mean[:, width - half - 1:width - half]
+    return mean
 
 
 def _centroid_chunk(beams, sources, reader, params, dark, default_mapping, scratch=None):

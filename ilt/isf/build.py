@@ -568,7 +568,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
         folds = at_folds = None
         if fold_cells:
             sum_beams = _sum_beams(spots_dir, beams) if frame_sum is not None else None
-            brightest = None if frame_sum is None else float(np.max(peak if peak is not None else frame_sum))
+            # noise-free frames' folds are judged against a nominal noise of their brightest pixel
+            brightest = None if noise is not None or frame_sum is None else \
+                float(np.max(peak if peak is not None else frame_sum))
             labels, folds, at_folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers,
                                                   chunk, frame_sum, sum_beams, fresh, brightest)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)

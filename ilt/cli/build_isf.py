@@ -48,6 +48,15 @@ from ilt.workspace.options import BUILD_ISF
                    "at least 15% below that light a spacing either side (the dips it makes by itself, once a "
                    "spacing, are shallower). It "
                    "reads each frame again over its spot's rows only (docs/fullres.md, 'A spot on a fold').")
+@stage_option(BUILD_ISF["fold_transfer"], show_default=True,
+              help="With fold cells, also measure the light the cells beside each fold send across it spread "
+                   "over the cell, not from its spot alone (fold_transfer.npz; 'ilt decompose' adds it to T): "
+                   "facets light each other the more, the nearer the fold, and a spot a few pixels further "
+                   "from the fold than its cell's pixels stands for them badly. 'flatland': at the folds whose "
+                   "light is the same along them (a flatland scene's), where it was measured better at every "
+                   "density; 'all': at 3D folds too (the box: 22-25% better at 48-108 beams, 5-7% worse at "
+                   "432); 'off'. It reads the frames of the beams beside the folds again (docs/fullres.md, "
+                   "'Across a fold').")
 @click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",
               help="An earlier build of the same scene and camera (its ISF directory, or its cells.exr): every "
                    "pixel its cells covered stays covered, so that a denser rescan covers at least what it "
@@ -59,7 +68,7 @@ from ilt.workspace.options import BUILD_ISF
 @force_option
 @json_option
 def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, max_cell_radius, fine_degree,
-            no_fine, fold_cells, keep_covered, workers, cluster, workspace, force, as_json):
+            no_fine, fold_cells, fold_transfer, keep_covered, workers, cluster, workspace, force, as_json):
     """Build the ISF directory (-o, default WORKSPACE/isf) from the beam frames in HDR_DIR
     and the spots in SPOTS_DIR (from 'ilt centroids').
 
@@ -93,5 +102,5 @@ def command(hdr_dir, spots_dir, output, sampling, min_separation, lit_fraction, 
                             lit_fraction=lit_fraction, max_cell_radius=max_cell_radius, executor=executor,
                             workers=workers,
                             fine_degree=None if no_fine else fine_degree, keep_covered=keep_covered,
-                            fold_cells=fold_cells, progress=update, force=force)
+                            fold_cells=fold_cells, fold_transfer=fold_transfer, progress=update, force=force)
     emit(as_json, summary, [summary["output"]])

@@ -59,13 +59,17 @@ from ilt.workspace.options import DECOMPOSE
               help="Take T1 diagonal, as the paper does, even when the ISF measured its spots' direct light "
                    "in neighbouring cells (isf/spill.npz): by default that light is taken out of T first, "
                    "so it is not read as interreflection (docs/spots-and-isf.md).")
+@click.option("--no-fold-transfer", "no_fold_transfer", is_flag=True,
+              help="Use T as measured, each cell's light sent from its spot, even where the ISF measured the "
+                   "light its cells send across the scene's folds spread over the cell (isf/fold_transfer.npz, "
+                   "docs/fullres.md 'Across a fold').")
 @cluster_options_for("the compression of T's blocks, with the compressed solver (T.npy on storage every "
                      "worker sees; the other solvers, the photos and the outputs stay on this machine)")
 @workspace_option
 @force_option
 @json_option
 def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solver, noise, regularise, samples_only,
-            accept_non_lambertian, no_spill, cluster, workspace, force, as_json):
+            accept_non_lambertian, no_spill, no_fold_transfer, cluster, workspace, force, as_json):
     """Split each INPUT into its 1..N-bounce images, the indirect sum and the residual.
 
     INPUT is an EXR photo on the grid of the beam frames (integrated over the ISF's
@@ -96,5 +100,5 @@ def command(inputs, isf_path, output, n_bounces, tol, cache_dir, no_cache, solve
         summaries = decompose(isf, list(inputs), output, n_bounces=n_bounces, tol=tol, cache_dir=cache,
                               force=force, solver=solver, noise=noise, regularise=regularise,
                               samples_only=samples_only, executor=executor, spill=not no_spill,
-                              accept_non_lambertian=accept_non_lambertian)
+                              accept_non_lambertian=accept_non_lambertian, fold_transfer=not no_fold_transfer)
     emit(as_json, summaries, [s["output"] for s in summaries])

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse
 
 from ilt.decompose.fullres import full_resolution, photo_noise_models
 from ilt.decompose.noise import MAX_M, bounce_sigma, draws_for, entry_noise, photo_model, photo_noise
@@ -41,6 +42,7 @@ from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
 from ilt.isf.lambertian import LAMBERTIAN_FILE, read_lambertian
 from ilt.isf.layout import sample_frame, splat, vector_to_image
 from ilt.isf.noise import NOISE_FILE, T_VAR_FILE, read_noise
+from ilt.isf.fold_transfer import FILE as FOLD_FILE, apply_corrections
 from ilt.isf.spill import SPILL_FILE, Unmixing
 from ilt.transport.compressed import grid_points
 from ilt.transport.diagnostics import decomposition_diagnostics, operator_diagnostics
@@ -464,6 +466,7 @@ def decompose(
     spill: bool = True,
     accept_non_lambertian: bool = False,
     shown_as: str | os.PathLike | None = None,
+    fold_transfer: bool = True,
 ) -> list[dict]:
     """Decompose every input into ``out/<stem>/``; returns one summary per input.
 
@@ -476,6 +479,10 @@ def decompose(
     ``spill``: when the ISF measured its spots' direct light in other cells
     (``spill.npz``, :mod:`ilt.isf.spill`), split ``(I + Q)^-1 p`` with the operator of
     ``(I + Q)^-1 T`` and mix the bounces back (``False``: the paper's diagonal ``T1``).
+
+    ``fold_transfer``: when the ISF measured the light its cells send across the scene's
+    folds spread over each cell (``fold_transfer.npz``, :mod:`ilt.isf.fold_transfer`), add it
+    to that T (``False``: T as measured, each cell's light sent from its spot).
 
     ``solver``, ``noise`` and ``regularise`` choose how ``C1`` is built (see
     :func:`load_operator`). EXR photos are also split at full resolution when the ISF
@@ -504,7 +511,7 @@ def decompose(
     shown = Path(shown_as) if shown_as is not None else out
     fingerprint = fingerprint_array(np.asarray(isf.T))
     parameters = decompose_parameters(isf, n_bounces, tol, solver, noise, regularise, samples_only, spill,
-                                      accept_non_lambertian)
+                                      accept_non_lambertian, fold_transfer)
     verdict = _lambertian_verdict(isf, accept_non_lambertian)
     hashes = {photo.name: fingerprint_file(photo.path) for photo in photos}   # each photo read once
     done = {}
@@ -536,12 +543,17 @@ def decompose(
     with contextlib.ExitStack() as stack:
         spilled = _unmixing(isf, spill)
         T_op = isf.T if spilled is None else _unmixed_T(isf, spilled, cache_dir, stack)
+        folded = _fold_corrections(isf, fold_transfer)
+        if folded is not None:
+            T_op = _folded_T(T_op, folded, spilled is not None, cache_dir, stack)
         variance = _entry_variance(isf) if noise_source != "given" else None
-        T_op, diagonal = _debiased_diagonal(T_op, variance, spilled is not None, cache_dir, stack)
+        T_op, diagonal = _debiased_diagonal(T_op, variance, spilled is not None or folded is not None, cache_dir,
+                                            stack)
         try:
             op, op_diag = load_operator(T_op, cache_dir, solver, noise, isf.layout, regularise, isf.beams,
                                         isf.samples,
-                                        fingerprint=fingerprint if spilled is None and diagonal is None else None,
+                                        fingerprint=fingerprint if spilled is None and diagonal is None
+                                        and folded is None else None,
                                         executor=executor, noise_source=noise_source,
                                         cells=isf.cells if regularise is not False else None,
                                         variance=variance)
@@ -549,6 +561,11 @@ def decompose(
             raise TransportError(f"{isf.path}: {exc}") from None
         if diagonal is not None:
             op_diag["diagonal_debiased"] = diagonal
+        if folded is not None:
+            op_diag["fold_transfer"] = {"entries": int(len(folded[0])), "columns": int(np.unique(folded[1]).size)}
+            log.info("%s: the light %d cells send across the scene's folds, spread over each cell (%s), is added "
+                     "to T's %d columns before inverting", isf.path, len(folded[0]), FOLD_FILE,
+                     int(np.unique(folded[1]).size))
         if spilled is not None:
             Q = spilled.Q
             op_diag["spill"] = {"entries": int(Q.nnz), "mean_share": float(Q.sum() / isf.m),
@@ -669,6 +686,35 @@ def _unmixed_T(isf: ISF, spilled: Unmixing, cache_dir, stack: contextlib.ExitSta
     return spilled.unmix(isf.T, out=_scratch_map(isf.T.shape, "ilt-unmixed-", cache_dir, stack))
 
 
+def _fold_corrections(isf: ISF, fold_transfer: bool):
+    """(rows, cols, values) of the ISF's ``fold_transfer.npz`` when asked for and not empty, else None."""
+    path = Path(isf.path).parent / FOLD_FILE
+    if not fold_transfer or not path.exists():
+        return None
+    try:
+        corrections = scipy.sparse.load_npz(path).tocoo()
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not readable ({exc}); run ilt build-isf again") from None
+    if corrections.shape != (isf.m, isf.m):
+        raise InputError(f"{path}: shape {corrections.shape}, but {isf.path} has m = {isf.m}: built for another "
+                         "T; run ilt build-isf again")
+    if corrections.nnz == 0:
+        return None
+    return corrections.row.astype(np.int64), corrections.col.astype(np.int64), corrections.data
+
+
+def _folded_T(T, corrections, owned: bool, cache_dir, stack: contextlib.ExitStack) -> np.ndarray:
+    """T with the fold corrections (:func:`ilt.isf.fold_transfer.apply_corrections`): in place
+    when ``owned`` (the spill's unmixed T), else a copy (a memory map beside the operator
+    cache for a memory-mapped T, as :func:`_unmixed_T`)."""
+    if not owned:
+        out = _scratch_map(T.shape, "ilt-folded-", cache_dir, stack) if isinstance(T, np.memmap) \
+            else np.empty(T.shape)
+        out[...] = T
+        T = out
+    return apply_corrections(T, *corrections)
+
+
 def _scratch_map(shape, prefix: str, cache_dir, stack: contextlib.ExitStack) -> np.memmap:
     """A float64 memory map of ``shape`` in a temporary directory beside the operator cache
     (the system's temporary directory without one), removed when ``stack`` closes: a copy
@@ -711,19 +757,24 @@ def frames_noise(isf_dir) -> tuple[float | None, str]:
 
 def decompose_parameters(isf: ISF, n_bounces: int = 8, tol: float = 0.0, solver: str = "auto",
                          noise: float | None = None, regularise: bool | None = None, samples_only: bool = False,
-                         spill: bool = True, accept_non_lambertian: bool = False) -> dict:
+                         spill: bool = True, accept_non_lambertian: bool = False,
+                         fold_transfer: bool = True) -> dict:
     """What a photo's ``manifest.json`` records as the parameters of its decomposition:
-    the options, and the fine operator and spill matrix used by their files' hashes
-    (None: none), so a re-run after ``fine/`` or ``spill.npz`` was built or rebuilt is
-    not taken for one already done."""
+    the options, and the fine operator, spill matrix and fold corrections used by their
+    files' hashes (None: none; the fold corrections only when used), so a re-run after
+    ``fine/``, ``spill.npz`` or ``fold_transfer.npz`` was built or rebuilt is not taken for
+    one already done."""
     directory = Path(isf.path).parent
     manifest = directory / FINE_DIR / MANIFEST
     fine = None if samples_only or not manifest.exists() else fingerprint_file(manifest)
-    return {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise,
-            "regularise": "auto" if regularise is None else regularise,
-            "samples_only": samples_only, "fine": fine,
-            "spill": fingerprint_file(directory / SPILL_FILE) if _spill_used(isf, spill) else None,
-            "accept_non_lambertian": accept_non_lambertian}
+    out = {"bounces": n_bounces, "tol": tol, "solver": solver, "noise": noise,
+           "regularise": "auto" if regularise is None else regularise,
+           "samples_only": samples_only, "fine": fine,
+           "spill": fingerprint_file(directory / SPILL_FILE) if _spill_used(isf, spill) else None,
+           "accept_non_lambertian": accept_non_lambertian}
+    if fold_transfer and (directory / FOLD_FILE).exists():
+        out["fold_transfer"] = fingerprint_file(directory / FOLD_FILE)
+    return out
 
 
 def _lambertian_verdict(isf: ISF, accept: bool) -> dict | None:

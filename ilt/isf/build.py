@@ -458,7 +458,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
               max_cell_radius: float | None = None, executor=None, workers: int | None = None,
               chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
               fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True, lambertian: bool = True,
-              keep_covered: str | os.PathLike | None = None, fold_cells: bool = True) -> dict:
+              keep_covered: str | os.PathLike | None = None, fold_cells: bool = True,
+              fold_transfer: str = "flatland") -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
@@ -484,7 +485,11 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     (:func:`earlier_coverage`), so that a denser scan covers at least what it did.
     ``fold_cells`` (cell sampling, frames with a noise model): the cells end at the concave
     folds the frames show (:mod:`ilt.isf.folds`), at the cost of reading each frame's rows
-    about its spot again.
+    about its spot again. ``fold_transfer`` (with fold cells): also write ``fold_transfer.npz``,
+    the light the cells beside each fold send across it, spread over the cell rather than
+    at its spot (:mod:`ilt.isf.fold_transfer`), reading the frames of the beams beside the
+    folds again: ``"flatland"`` at the folds a flatland scene's frames show, ``"all"`` at 3D
+    folds too, ``"off"``.
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
@@ -516,6 +521,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     discs = np.array([spot_radius(spots[i].area) for i in kept]) * grid_px
     labels = None
     noise = None
+    fold_valleys = None
     if sampling == "cell":
         # the frames' noise against their level, from a sample of them (ilt.isf.noise): the
         # lit test's noise, each entry's variance (T_var.npy) and the fine fit's test take it
@@ -571,8 +577,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             # noise-free frames' folds are judged against a nominal noise of their brightest pixel
             brightest = None if noise is not None or frame_sum is None else \
                 float(np.max(peak if peak is not None else frame_sum))
-            labels, folds, at_folds = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers,
-                                                  chunk, frame_sum, sum_beams, fresh, brightest)
+            labels, folds, at_folds, fold_valleys = _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor,
+                                                           workers, chunk, frame_sum, sum_beams, fresh, brightest)
         empty = np.flatnonzero(np.bincount(labels[labels >= 0], minlength=m) == 0)
         if empty.size:
             raise BuildError(f"beam {plan[empty[0]]}: its cell holds no lit pixel (spot at "
@@ -699,6 +705,9 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                 log.info("replaced %d isolated outlier pixels (fireflies, hot pixels: %g sigma above all their "
                          "neighbours) in %d of %d frames, most in beam %d's (%d)", int(clamped.sum()),
                          OUTLIER_SIGMAS, int(np.count_nonzero(clamped)), m, plan[worst], int(clamped[worst]))
+        if fold_transfer != "off" and fold_valleys is not None:
+            fields["fold_transfer"] = _fold_transfer(tmp, hdr, plan, on_grid, labels, fold_valleys, scales,
+                                                     fold_transfer == "all")
         if labels is not None and spill:
             Q = spill_matrix(spill_columns, m)
             scipy.sparse.save_npz(tmp / SPILL_FILE, Q)
@@ -716,6 +725,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                       "max_cell_radius": max_cell_radius, "fine_degree": fine_degree, "lit_sigmas": LIT_SIGMAS}
         if sampling == "cell":
             parameters["fold_cells"] = bool(fold_cells)
+            parameters["fold_transfer"] = fold_transfer if fold_cells else "off"
         inputs = {str(spots_dir / SPOTS_FILE): ""}
         if (spots_dir / MANIFEST).exists():   # the spots' manifest by its hash: what `ilt status` knows a stage by
             spots_manifest = read_manifest(spots_dir)
@@ -727,6 +737,23 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
             inputs[lit_info["kept_from"]["cells"]] = earlier_fingerprint
         write_manifest(tmp, "build-isf", parameters, inputs=inputs, extra={**manifest_fields, **fields}, hashed=hashed)
     return {"output": str(out), "m": m, "sampling": sampling, "dropped": len(drops), "drops": drops}
+
+
+def _fold_transfer(tmp: Path, hdr, plan: list[int], on_grid: np.ndarray, labels: np.ndarray, valleys,
+                   scales: np.ndarray, solid: bool) -> dict:
+    """``fold_transfer.npz`` (:mod:`ilt.isf.fold_transfer`) from the folds' barriers and far
+    light (``valleys``, :func:`_fold_cells`), at 3D folds too when ``solid``; the manifest's record."""
+    from ilt.isf.fold_transfer import FILE, fold_corrections, write_corrections
+
+    barriers, light, spacing = valleys
+
+    def frame_of(k):
+        return load_frame(hdr.files[plan[k]], hdr.frame_shape)
+
+    rows, cols, values, lines = fold_corrections(labels, on_grid, barriers, light, spacing, frame_of, scales, solid)
+    write_corrections(tmp / FILE, rows, cols, values, len(plan))
+    log.info("fold transfer: %d entries across %d fold lines", len(values), len(lines))
+    return {"entries": int(len(values)), "lines": lines}
 
 
 def _sum_beams(spots_dir: Path, beams: list[int]) -> list[int] | None:
@@ -748,9 +775,10 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     over the frames, each frame's replaced first. Noise-free frames (``noise`` None) are
     judged against :func:`ilt.isf.folds.nominal_noise` of ``brightest`` (the frames'
     brightest pixel), their discs tapered (:func:`ilt.isf.folds.near_chunk`), nothing
-    replaced; without the sum, as without fold cells. Returns the labels, the record and the
+    replaced; without the sum, as without fold cells. Returns the labels, the record, the
     cells at a barrier, which keep no plane of their own (:func:`ilt.isf.folds.cells_at_barriers`;
-    None when not applied)."""
+    None when not applied), and the barrier mask, the far light and the spot spacing that
+    :mod:`ilt.isf.fold_transfer` reads the folds from (None when not applied)."""
     from ilt.isf.folds import FOLD_DEPTH, FOLD_LOW, FOLD_SIGMAS, NOMINAL_ELECTRONS, cells_at_barriers, far_chunk, far_counts, \
         far_from_sum, fold_cells, near_chunk, nominal_noise, valley_barriers
 
@@ -759,7 +787,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
         if frame_sum is None or sum_beams is None or brightest is None or not brightest > 0:
             log.info("fold cells: noise-free frames and no sum.exr to judge their folds on: cells as without them")
             return labels, {"applied": False, "reason": "noise-free frames and no sum.exr ('ilt centroids' writes it)"}, \
-                None
+                None, None
         judge = nominal_noise(brightest)
     spacing = spacing_of(on_grid)
     row = {b: i for i, b in enumerate(plan)}
@@ -799,7 +827,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
                     "depth": FOLD_DEPTH, **valleys, "far_light": source, **record, "flat_cells": int(at_folds.size),
                     **({} if noise is not None else {"noise": f"nominal: noise-free frames judged as with photon "
                                                               f"noise of {NOMINAL_ELECTRONS:g} e- at their "
-                                                              f"brightest pixel"})}, at_folds
+                                                              f"brightest pixel"})}, at_folds, (barriers, light, spacing)
 
 
 def _outlier_record(clamped: np.ndarray, plan: list[int]) -> dict:

@@ -1,0 +1,426 @@
+"""The light a cell sends across a concave fold, from the frames (build-isf; decompose applies it).
+
+T's column k is the light of beam k's *spot*: a point. A photo lights the whole of cell k,
+and the sample-level recursion uses column k for all of it. Where the light between two
+cells varies smoothly with the point it leaves from, the spot stands for its cell well
+enough. Across a concave fold it does not: two facets that meet at a fold light each
+other the more, the nearer the fold both points are (the kernel between a point at
+distance ``a`` from the fold on one facet and one at ``b`` on the other is homogeneous of
+degree -1 in flatland, -2 in 3D: ``K(t a, t b) = K(a, b) / t^gamma``), so a spot 12 px from
+the fold stands for the cell's pixels at 1 px from it badly. A point quadrature then takes
+the light between the two cells next to a fold at 0.4-1.2 of the cell-to-cell light
+(the same for any fold angle within 10%), by how far each spot lies from the fold; the
+sample-level error follows, and so does which of two scans is better: on the M's 2x
+lattice, scans of 58 and 77 beams whose spots fell 12 px from a fold on one side and 4 px on
+the other were worse than 48 (docs/fullres.md, "Across a fold").
+
+The frames know the kernel. Frame k shows, on the facet across the fold, the light of a
+point at ``b_k`` reaching every pixel there, and by the kernel's homogeneity a point at
+any ``b`` on the same line across the fold gives the same light scaled about the fold by
+``b_k / b`` (and in 3D shifted along it): ``K(p, q) = (b_k / b_q)^gamma F_k(M_q(p))``, with
+``M_q(p) = f_k + (b_k / b_q) (p - f_q)``, ``f`` each point's foot on the fold. So the light
+cell k sends to cell i across the fold, spread over cell k's pixels, is the mean over q in
+cell k of ``sum_{p in i} K(p, q)``, and the point's is ``sum_{p in i} F_k(p)``. Their
+difference, in T's units, is :func:`cross_fold_corrections`'s ``delta[i, k]``; decompose
+adds it to the split's T and carries it through T's further bounces
+(:func:`apply_corrections`).
+
+Folds: the barrier lines of :mod:`ilt.isf.folds`, as straight segments
+(:func:`fold_lines`), each moved and turned onto the far light's valley floor to a tenth
+of a pixel (:func:`valley_floor`): the correction is as sensitive to the fold's place as
+to the spots' (half a pixel moved the M's figures by a third). Flatland or 3D
+(:func:`is_flatland`): a simulator's flatland frames are the same along the fold, a 3D
+scene's light falls off along it. ``q`` nearer the fold than ``b_k / MAX_SCALE`` is taken
+at that distance: the mapped pixels would leave the facet.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: barrier pixels within this many px of a line belong to it (:func:`fold_lines`), in a run
+#: along it without a gap of more than this many px
+LINE_TOLERANCE, MAX_GAP_PX = 1.0, 3.0
+#: a fold line spans at least this many spot spacings, or this many px if fewer (a flatland
+#: scene's frames are a few rows high)
+MIN_LINE_SPACINGS, MIN_LINE_PX = 2.0, 16.0
+#: the far light's valley floor (:func:`valley_floor`) is looked for this many spot spacings
+#: (3 to 8 px) either side of the barrier line, along stretches of this many spacings
+VALLEY_REACH, FLOOR_SPACINGS = 0.5, 1.0
+#: a line is turned onto the floors only where it holds this many stretches
+MIN_STRETCHES = 4
+#: an emitting spot lies within this many spot spacings of the fold, its cell touching it
+EMITTER_SPACINGS = 3.0
+#: a cell touches a fold when a pixel of it lies within this many px of the line ...
+TOUCH_PX = 2.0
+#: ... and at least this share of its pixels lie on one side
+SIDE_SHARE = 0.8
+#: the emitting points are scaled to the spot by at most this factor (nearer the fold: there)
+MAX_SCALE = 8.0
+#: the light along the fold, 1.5-2.5 spot distances from the spot's foot against within half
+#: of one: above this share the frames are flatland (constant along the fold)
+FLATLAND_SHARE = 0.6
+#: pixels of a cell sampled at most, as emitters and as receivers
+MAX_EMITTERS, MAX_RECEIVERS = 256, 2000
+#: a correction's ratio to the point's light is kept within [1 / CAP, CAP]
+CAP = 4.0
+#: a line's kernel is checked on this many pairs of beams (:func:`homogeneity_miss`), and the
+#: line is no fold of two planes where it misses by more than this share
+CHECKS, MAX_MISS = 6, 0.5
+FILE = "fold_transfer.npz"
+
+
+@dataclass(frozen=True)
+class FoldLine:
+    """A straight fold in the frame: ``centre`` (x, y), unit ``direction`` and ``normal``,
+    and its extent ``u0 .. u1`` along the direction from the centre (px)."""
+
+    centre: np.ndarray
+    direction: np.ndarray
+    normal: np.ndarray
+    u0: float
+    u1: float
+    pixels: int
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """(n,) signed distance (px) of (n, 2) points from the line, along its normal."""
+        return (np.asarray(points, float) - self.centre) @ self.normal
+
+    def along(self, points: np.ndarray) -> np.ndarray:
+        return (np.asarray(points, float) - self.centre) @ self.direction
+
+
+def _longest_run(along: np.ndarray) -> np.ndarray:
+    """Indices into ``along`` (positions on a line) of its longest run without a gap of
+    :data:`MAX_GAP_PX`."""
+    order = np.argsort(along)
+    runs = np.split(order, np.flatnonzero(np.diff(along[order]) > MAX_GAP_PX) + 1)
+    return max(runs, key=len)
+
+
+def fold_lines(barriers: np.ndarray, spacing: float, seed: int = 0, tries: int = 300) -> list[FoldLine]:
+    """The straight segments of a barrier mask (H, W) bool, longest first: repeatedly, of the
+    lines through two barrier pixels (a fixed-seed sample of pairs), the one with the most
+    barrier pixels within :data:`LINE_TOLERANCE` px of it in one run without a gap of
+    :data:`MAX_GAP_PX` (a line through two folds' pixels in one row is none), fitted to
+    them by least squares and taken out, while that spans :data:`MIN_LINE_SPACINGS` spot
+    spacings (or :data:`MIN_LINE_PX`). Where folds meet (a box's corner) each arm is a line
+    of its own."""
+    ys, xs = np.nonzero(barriers)
+    points = np.column_stack([xs, ys]).astype(np.float64)
+    need = min(MIN_LINE_SPACINGS * spacing, MIN_LINE_PX)
+    rng = np.random.default_rng(seed)
+    lines = []
+    while len(points) >= need:
+        best = None
+        for a, b in rng.integers(0, len(points), size=(tries, 2)):
+            step = points[b] - points[a]
+            length = float(np.hypot(*step))
+            if length < 3.0:
+                continue
+            direction = step / length
+            near = np.flatnonzero(np.abs((points - points[a]) @ np.array([-direction[1], direction[0]]))
+                                  <= LINE_TOLERANCE)
+            run = near[_longest_run(points[near] @ direction)]
+            if best is None or len(run) > len(best):
+                best = run
+        if best is None:
+            break
+        chosen = points[best]
+        centre = chosen.mean(axis=0)
+        direction = np.linalg.svd(chosen - centre, full_matrices=False)[2][0]
+        u = (chosen - centre) @ direction
+        if u.max() - u.min() + 1.0 < need - 0.5:       # (a line of pixels counts them: rounding)
+            break
+        lines.append(FoldLine(centre, direction, np.array([-direction[1], direction[0]]), float(u.min()) - 0.5,
+                              float(u.max()) + 0.5, len(chosen)))
+        points = np.delete(points, best, axis=0)
+    return lines
+
+
+def _floor(ts: np.ndarray, profile: np.ndarray) -> float:
+    """Where a valley profile is least: its least sample moved to the least of a parabola
+    through the samples within a pixel of it (when that lies within the pixel)."""
+    j = int(np.argmin(profile))
+    near = np.abs(ts - ts[j]) <= 1.0 + 1e-9
+    if near.sum() >= 3:
+        c2, c1, _ = np.polyfit(ts[near], profile[near], 2)
+        if c2 > 0 and abs(-c1 / (2 * c2) - ts[j]) <= 1.0:
+            return float(-c1 / (2 * c2))
+    return float(ts[j])
+
+
+def valley_floor(line: FoldLine, light: np.ndarray, spacing: float) -> tuple[FoldLine, float]:
+    """``line`` moved and turned onto the far light's valley floor, and its move (px) at its
+    centre: along stretches of :data:`FLOOR_SPACINGS` spot spacings (4 px at least), the light
+    averaged along the stretch at offsets across the line (tenths of a pixel, within
+    :data:`VALLEY_REACH` spacings), and where it is least (:func:`_floor`); a line fitted
+    through those floors (a line of fewer than :data:`MIN_STRETCHES` only moved, to its whole
+    length's floor: two or three noisy floors would turn it). The barrier pixels wander by a
+    pixel with the noise and the valley test's smoothing: a line fitted to them was 0.7 px
+    askew over 32 px on the noisy M. (Where two lines fitted to the valley's arms meet was
+    tried first: 0.3 px off on noise-free frames, where this is within 0.1.)"""
+    from scipy.ndimage import map_coordinates
+
+    light = np.asarray(light, np.float64)
+    reach = float(np.clip(VALLEY_REACH * spacing, 3.0, 8.0))
+    stretches = int((line.u1 - line.u0) // max(4.0, FLOOR_SPACINGS * spacing))
+    # a line of fewer stretches is moved, not turned: two or three noisy floors would turn it
+    edges = np.linspace(line.u0, line.u1, stretches + 1) if stretches >= MIN_STRETCHES else \
+        np.array([line.u0, line.u1])
+    ts = np.arange(-reach, reach + 1e-9, 0.1)
+    centres, floors = [], []
+    for a, b in zip(edges[:-1], edges[1:]):
+        us = np.arange(a + 0.5, b, 1.0)
+        if us.size == 0:
+            continue
+        points = line.centre + us[None, :, None] * line.direction + ts[:, None, None] * line.normal
+        profile = map_coordinates(light, [points[..., 1].ravel(), points[..., 0].ravel()], order=1,
+                                  mode="nearest").reshape(len(ts), len(us)).mean(axis=1)
+        floor = _floor(ts, profile)
+        if abs(floor) <= 1.5:
+            centres.append(0.5 * (a + b))
+            floors.append(floor)
+    if not floors:
+        return line, 0.0
+    centres, floors = np.array(centres), np.array(floors)
+    slope, offset = np.polyfit(centres, floors, 1) if len(centres) >= MIN_STRETCHES else (0.0, float(np.mean(floors)))
+    direction = line.direction + slope * line.normal
+    direction /= np.hypot(*direction)
+    normal = np.array([-direction[1], direction[0]])
+    if normal @ line.normal < 0:
+        normal = -normal
+    return FoldLine(line.centre + offset * line.normal, direction, normal, line.u0, line.u1, line.pixels), \
+        float(offset)
+
+
+def is_flatland(line: FoldLine, frame: np.ndarray, spot: np.ndarray, lit: np.ndarray) -> bool | None:
+    """Whether a frame's light across ``line`` is the same along the fold (a flatland
+    scene's rendered rows) or falls off along it (3D), from the light at 0.5-1.5 spot
+    distances from the fold: 1.5-2.5 spot distances along it from the spot's foot against
+    within 0.5; None when the frame has not both there."""
+    b = abs(float(line.distance(spot[None])[0]))
+    if b < 1.0:
+        return None
+    ys, xs = np.nonzero(lit)
+    pixels = np.column_stack([xs, ys]).astype(np.float64)
+    d = line.distance(pixels) * -np.sign(line.distance(spot[None])[0])
+    du = np.abs(line.along(pixels) - line.along(spot[None])[0])
+    band = (d >= 0.5 * b) & (d <= 1.5 * b)
+    near, far = band & (du <= 0.5 * b), band & (du >= 1.5 * b) & (du <= 2.5 * b)
+    if not near.any() or not far.any():
+        return None
+    level = float(np.mean(frame[ys[near], xs[near]]))
+    return bool(level > 0 and np.mean(frame[ys[far], xs[far]]) >= FLATLAND_SHARE * level)
+
+
+def _cell_pixels(labels: np.ndarray, m: int) -> list[np.ndarray]:
+    ys, xs = np.nonzero(labels >= 0)
+    label = labels[ys, xs].astype(np.int64)
+    order = np.argsort(label, kind="stable")
+    starts = np.searchsorted(label[order], np.arange(m + 1))
+    xy = np.column_stack([xs, ys]).astype(np.float64)[order]
+    return [xy[starts[j]:starts[j + 1]] for j in range(m)]
+
+
+def _thinned(points: np.ndarray, count: int) -> np.ndarray:
+    return points if len(points) <= count else points[np.linspace(0, len(points) - 1, count).astype(np.int64)]
+
+
+def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray) -> dict[int, float]:
+    """The cells that touch ``line`` (a pixel within :data:`TOUCH_PX` of it within its
+    extent) with :data:`SIDE_SHARE` of their pixels and their spot on one side, the spot
+    within the line's extent: cell -> side (+-1). Past a line's end (where a box's folds meet)
+    a cell across its extension is across another fold."""
+    side = {}
+    spot_d, spot_u = line.distance(spots), line.along(spots)
+    for j, pixels in enumerate(cells):
+        if len(pixels) == 0 or not line.u0 <= spot_u[j] <= line.u1:
+            continue
+        d, u = line.distance(pixels), line.along(pixels)
+        if not np.any((np.abs(d) <= TOUCH_PX) & (u >= line.u0) & (u <= line.u1)):
+            continue
+        s = float(np.sign(np.median(d)))
+        if s == 0 or np.mean(np.sign(d) == s) < SIDE_SHARE or np.sign(spot_d[j]) != s:
+            continue
+        side[j] = s
+    return side
+
+
+def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.ndarray, receiving: np.ndarray,
+               flatland: bool, facet: np.ndarray | None = None) -> np.ndarray:
+    """(n,) the light points (n, 2) on the spot's side of ``line`` send to the pixels
+    ``receiving`` (r, 2) across it, from the spot's ``frame`` by the kernel's homogeneity
+    (module docstring): ``(b_s / b_q)^gamma`` times the frame summed over the receiving
+    pixels scaled about the fold by ``b_s / b_q`` (3D: and shifted along it). Points nearer
+    the fold than ``b_s / MAX_SCALE`` are taken there. ``facet`` (H, W) bool: where the
+    receiving facet is (the scan's lit pixels); mapped pixels outside it or past the line's
+    ends count none (3D: light past a fold's end is not the kernel's)."""
+    from scipy.ndimage import map_coordinates
+
+    bs = abs(float(line.distance(spot[None])[0]))
+    scale = bs / np.maximum(np.abs(line.distance(points)), bs / MAX_SCALE)           # (n,)
+    d, u = line.distance(receiving), line.along(receiving)
+    if flatland:
+        along = np.broadcast_to(u[None, :], (len(scale), len(u)))
+    else:
+        along = line.along(spot[None])[0] + scale[:, None] * (u[None, :] - line.along(points)[:, None])
+    mapped = line.centre + along[..., None] * line.direction + (scale[:, None] * d[None, :])[..., None] * line.normal
+    values = map_coordinates(frame, [mapped[..., 1].ravel(), mapped[..., 0].ravel()], order=1,
+                             cval=0.0).reshape(len(scale), len(u))
+    if facet is not None:
+        # past the facet (beyond the fold's ends, or where the scan's light ends) the frame
+        # holds other surfaces' light, not the kernel's: none
+        values *= map_coordinates(facet.astype(np.float32), [mapped[..., 1].ravel(), mapped[..., 0].ravel()],
+                                  order=0, cval=0.0).reshape(values.shape)
+        values *= (along >= line.u0) & (along <= line.u1)
+    return scale ** (1.0 if flatland else 2.0) * values.sum(axis=1)
+
+
+def _receivers(line: FoldLine, cells: list[np.ndarray], side: dict[int, float], k: int, u: float,
+               reach: float) -> list[int]:
+    return [i for i, si in side.items() if si != side[k] and np.abs(line.along(cells[i]) - u).min() <= reach]
+
+
+def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, spacing: float,
+                           frame_of, flatland: bool, side: dict[int, float] | None = None,
+                           facet: np.ndarray | None = None) -> dict[tuple[int, int], float]:
+    """``{(i, k): delta}`` in frame units: for each cell k touching ``line`` whose spot lies
+    within :data:`EMITTER_SPACINGS` of it, and each cell i touching it on the other side
+    within two spacings along it, the light cell k sends to cell i spread over cell k's
+    pixels, less what its spot sends (:func:`light_from`). ``frame_of(k)``: beam k's frame
+    (H, W), on the cells' grid; ``flatland``: gamma 1 and no shift along the fold, else 3D;
+    ``facet``: the scan's lit pixels (:func:`light_from`)."""
+    from scipy.ndimage import map_coordinates
+
+    side = fold_sides(line, cells, spots) if side is None else side
+    spot_d, spot_u = line.distance(spots), line.along(spots)
+    out = {}
+    for k in side:
+        if abs(float(spot_d[k])) > EMITTER_SPACINGS * spacing:
+            continue
+        receivers = _receivers(line, cells, side, k, spot_u[k], 2.0 * spacing)
+        if not receivers:
+            continue
+        frame = np.asarray(frame_of(k), np.float64)
+        emitters = _thinned(cells[k], MAX_EMITTERS)
+        for i in receivers:
+            receiving = _thinned(cells[i], MAX_RECEIVERS)
+            weight = len(cells[i]) / len(receiving)
+            point = float(map_coordinates(frame, [receiving[:, 1], receiving[:, 0]], order=1).sum()) * weight
+            if not point > 0:
+                continue
+            spread = float(np.mean(light_from(line, frame, spots[k], emitters, receiving, flatland, facet))) * weight
+            out[(i, k)] = (np.clip(spread / point, 1.0 / CAP, CAP) - 1.0) * point
+    return out
+
+
+def homogeneity_miss(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, spacing: float, frame_of,
+                     flatland: bool, side: dict[int, float], facet: np.ndarray | None = None) -> float | None:
+    """How far the kernel's homogeneity about ``line`` misses on the scan's own frames: for
+    up to :data:`CHECKS` beams k whose cell touches the fold, the beam k' behind it on the
+    same side (its spot 1.5-4 times as far from the fold, within a spacing along it), the
+    light k' sends to the cells touching the fold across from k, against what k's frame
+    gives for a point at k''s spot (:func:`light_from`): the median of ``|given / sent - 1|``.
+    None when no such pair lies about the line. On a concave fold between two planes it is
+    small (the M's folds 0.02-0.1); a line that is no such fold (a silhouette's valley, a
+    shadow's edge) misses."""
+    spot_d, spot_u = line.distance(spots), line.along(spots)
+    misses = []
+    for k in side:
+        if len(misses) >= CHECKS:
+            break
+        bk = abs(float(spot_d[k]))
+        behind = [j for j in range(len(spots)) if np.sign(spot_d[j]) == side[k] and
+                  1.5 * bk <= abs(float(spot_d[j])) <= 4.0 * bk and
+                  (flatland or abs(float(spot_u[j] - spot_u[k])) <= spacing)]
+        receivers = _receivers(line, cells, side, k, spot_u[k], spacing)
+        if not behind or not receivers:
+            continue
+        j = min(behind, key=lambda b: abs(float(spot_d[b])) + abs(float(spot_u[b] - spot_u[k])))
+        receiving = np.concatenate([_thinned(cells[i], MAX_RECEIVERS) for i in receivers])
+        from scipy.ndimage import map_coordinates
+
+        far = np.asarray(frame_of(j), np.float64)
+        sent = float(map_coordinates(far, [receiving[:, 1], receiving[:, 0]], order=1).sum())
+        given = float(light_from(line, np.asarray(frame_of(k), np.float64), spots[k], spots[j][None], receiving,
+                                 flatland, facet)[0])
+        if sent > 0:
+            misses.append(abs(given / sent - 1.0))
+    return float(np.median(misses)) if misses else None
+
+
+def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray, light: np.ndarray,
+                     spacing: float, frame_of, scales: np.ndarray, solid: bool = False):
+    """Every fold's corrections: ``(rows, cols, values, record)``, values in T's units
+    (frame units over each column's scale), for the cells ``labels`` (H, W; -1 outside),
+    the spots (m, 2) on the cells' grid, the barrier mask and far light of
+    :mod:`ilt.isf.folds`, and ``frame_of(k)`` beam k's frame. The record: per line its
+    ends, its move to the valley floor, flatland or 3D, how far the kernel's homogeneity
+    misses on its frames (:func:`homogeneity_miss`; a line missing by more than
+    :data:`MAX_MISS`, or that cannot be checked, gives nothing) and the entries it gave.
+    ``solid``: at 3D folds too (else flatland ones only: at 3D folds, measured on the box, the
+    spread cells split 22-25% better at 48-108 beams and 5-7% worse at 432, docs/fullres.md)."""
+    m = len(spots)
+    cells = _cell_pixels(labels, m)
+    lit = labels >= 0
+    entries: dict[tuple[int, int], float] = {}
+    record = []
+    for line in fold_lines(barriers, spacing):
+        line, offset = valley_floor(line, light, spacing)
+        side = fold_sides(line, cells, spots)
+        frames: dict[int, np.ndarray] = {}        # this line's beams, each read once
+
+        def frame(k):
+            if k not in frames:
+                frames[k] = np.asarray(frame_of(k), np.float64)
+            return frames[k]
+
+        near = [k for k in side if abs(float(line.distance(spots[k][None])[0])) <= EMITTER_SPACINGS * spacing]
+        votes = [v for v in (is_flatland(line, frame(k), spots[k], lit) for k in near[:5]) if v is not None]
+        flatland = bool(votes) and float(np.mean(votes)) > 0.5
+        used = bool(votes) and (flatland or solid)
+        miss = homogeneity_miss(line, cells, spots, spacing, frame, flatland, side, lit) if used else None
+        found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, lit) \
+            if miss is not None and miss <= MAX_MISS else {}
+        for key, value in found.items():      # a pair beside two folds (a corner): the longer line's
+            entries.setdefault(key, value)
+        ends = [line.centre + u * line.direction for u in (line.u0, line.u1)]
+        record.append({"from": [round(float(v), 2) for v in ends[0]], "to": [round(float(v), 2) for v in ends[1]],
+                       "moved_px": round(offset, 2), "flatland": flatland if votes else None,
+                       "miss": None if miss is None else round(miss, 3), "entries": len(found)})
+    rows = np.array([i for i, _ in entries], np.int64)
+    cols = np.array([k for _, k in entries], np.int64)
+    values = np.array(list(entries.values()), np.float64) / np.asarray(scales, np.float64)[cols] if entries \
+        else np.empty(0)
+    return rows, cols, values, record
+
+
+def write_corrections(path, rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) -> None:
+    """``fold_transfer.npz``: the corrections as a sparse (m, m) matrix."""
+    import scipy.sparse
+
+    scipy.sparse.save_npz(path, scipy.sparse.coo_matrix((values, (rows, cols)), shape=(m, m)).tocsc())
+
+
+def apply_corrections(T: np.ndarray, rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """T (m, m), owned (changed in place and returned), with ``delta`` (entries at ``rows``,
+    ``cols``, T's units) added and carried through the scene's further bounces: ``T + (T
+    D^-1) delta``, D T's diagonal. Light ``v`` more arriving in cell i is ``v / T_ii`` of
+    beam i's spot, which sends on T's column i (its own cell's entry the ``v`` itself).
+    Only delta's columns change; each from T as given."""
+    diagonal = np.diag(T).copy()
+    updates = {}
+    for k in np.unique(cols):
+        at = cols == k
+        updates[int(k)] = T[:, rows[at]] @ (values[at] / diagonal[rows[at]])
+    for k, column in updates.items():
+        T[:, k] += column
+    return T
+
+
+__all__ = ["FILE", "FoldLine", "apply_corrections", "cross_fold_corrections", "fold_corrections", "fold_lines",
+           "fold_sides", "homogeneity_miss", "is_flatland", "light_from", "valley_floor",
+           "write_corrections"]

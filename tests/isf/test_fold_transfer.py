@@ -1,0 +1,131 @@
+"""The light cells send across a concave fold (ilt.isf.fold_transfer), against the kernel's
+own double integrals: two facets unfolded into the frame, the fold the column x = FOLD."""
+
+import numpy as np
+import pytest
+
+from ilt.isf import fold_transfer as ft
+
+FOLD, ROWS, COLS = 50.0, 24, 101
+
+
+def flatland(a, b):
+    """The flatland form factor kernel between points a and b from a right-angled fold."""
+    return a * b / (2 * (a * a + b * b) ** 1.5)
+
+
+def solid(a, b, du):
+    """... in 3D, between points a and b from the fold and du apart along it."""
+    return a * b / (np.pi * (a * a + b * b + du * du) ** 2)
+
+
+def vertical_line(x=FOLD):
+    return ft.FoldLine(np.array([x, (ROWS - 1) / 2]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]),
+                       -(ROWS - 1) / 2 - 0.5, (ROWS - 1) / 2 + 0.5, ROWS)
+
+
+def cells_across(receiving=(42, 49), emitting=(51, 62)):
+    """Cell 0 the columns ``receiving`` left of the fold, cell 1 ``emitting`` right of it."""
+    labels = np.full((ROWS, COLS), -1)
+    labels[:, receiving[0]:receiving[1] + 1] = 0
+    labels[:, emitting[0]:emitting[1] + 1] = 1
+    return labels
+
+
+@pytest.mark.parametrize("spot_x", [52.0, 55.0, 59.0])
+def test_a_flatland_cells_light_across_the_fold_is_the_kernels_double_integral(spot_x):
+    """Frame of a spot at b_k across the fold: the kernel on the receiving facet. The cell's
+    light spread over its pixels, against its spot's, is the ratio of the kernel's sums over
+    the two cells' pixels (within 3%: bilinear samples of the frame): 0.4-1.6 here."""
+    labels = cells_across()
+    x = np.arange(COLS, dtype=float)
+    a = np.where(x < FOLD, FOLD - x, 0.0)
+    bk = spot_x - FOLD
+    frame = np.broadcast_to(np.where(x < FOLD, flatland(np.maximum(a, 1e-9), bk), 0.0), (ROWS, COLS)).copy()
+    spots = np.array([[45.5, 11.5], [spot_x, 11.5]])
+    cells = ft._cell_pixels(labels, 2)
+    line = vertical_line()
+    found = ft.cross_fold_corrections(line, cells, spots, spacing=12.0, frame_of=lambda k: frame, flatland=True)
+    assert set(found) == {(0, 1)}
+    ap = FOLD - np.arange(42, 50.0)
+    bq = np.maximum(np.arange(51, 63.0) - FOLD, bk / ft.MAX_SCALE)
+    point = flatland(ap, bk).sum()
+    spread = flatland(ap[:, None], bq[None, :]).sum(axis=0).mean()
+    expected = spread / point
+    got = 1.0 + found[(0, 1)] / (ROWS * point)
+    assert got == pytest.approx(expected, rel=0.03)
+    assert 0.3 < expected < 2.0
+
+
+def test_a_3d_cells_light_across_the_fold_is_the_kernels_double_integral():
+    """The same with the 3D kernel (light falls off along the fold): the spot's frame scaled
+    about the fold and shifted along it stands for every point of its cell (within 3%; the
+    frame reaching as far as the scaling takes the cells, as a facet's does)."""
+    rows, cols, fold = 128, 201, 100.0
+    labels = np.full((rows, cols), -1)
+    labels[58:70, 90:100] = 0
+    labels[58:70, 101:111] = 1
+    y, x = np.mgrid[0:rows, 0:cols].astype(float)
+    spot = np.array([108.0, 63.5])
+    bk = spot[0] - fold
+    frame = np.where(x < fold, solid(np.maximum(fold - x, 1e-9), bk, y - spot[1]), 0.0)
+    line = ft.FoldLine(np.array([fold, 63.5]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), -64.0, 64.0, rows)
+    found = ft.cross_fold_corrections(line, ft._cell_pixels(labels, 2), np.array([[95.0, 63.5], spot]),
+                                      spacing=10.0, frame_of=lambda k: frame, flatland=False)
+    ry, rx = np.nonzero(labels == 0)
+    ey, ex = np.nonzero(labels == 1)
+    point = solid(fold - rx, bk, ry - spot[1]).sum()
+    bq = np.maximum(ex - fold, bk / ft.MAX_SCALE)
+    spread = np.mean([solid(fold - rx, b, ry - v).sum() for b, v in zip(bq, ey)])
+    assert 1.0 + found[(0, 1)] / point == pytest.approx(spread / point, rel=0.03)
+    lit = np.ones(frame.shape, bool)
+    assert ft.is_flatland(line, frame, spot, lit) is False
+    flat = np.broadcast_to(frame[int(spot[1])], frame.shape)
+    assert ft.is_flatland(line, flat, spot, lit) is True
+    assert ft.is_flatland(line, flat, spot, labels >= 0) is None      # nothing lit far enough along
+
+
+def test_the_line_is_moved_onto_the_valley_floor_and_turned_along_it():
+    """Far light with a valley whose floor runs from x = 50.3 to 51.1 down 96 rows: a line
+    fitted to barrier pixels a pixel off is moved and turned onto it (within 0.1 px)."""
+    rows = 96
+    y, x = np.mgrid[0:rows, 0:COLS].astype(float)
+    floor = 50.3 + 0.8 * y / (rows - 1)
+    rows_floor = floor[:, 0]
+    light = np.minimum(np.abs(x - floor), 6.0) + 1.0
+    barriers = np.zeros((rows, COLS), bool)
+    barriers[np.arange(rows), np.round(rows_floor + 0.6).astype(int)] = True
+    lines = ft.fold_lines(barriers, spacing=8.0)
+    assert len(lines) == 1
+    moved, _ = ft.valley_floor(lines[0], light, spacing=8.0)
+    for row in (0.0, 48.0, 95.0):
+        u = (row - moved.centre[1]) / moved.direction[1]
+        at = moved.centre + u * moved.direction
+        assert at[0] == pytest.approx(50.3 + 0.8 * row / (rows - 1), abs=0.1)
+
+
+def test_folds_meeting_at_a_corner_are_a_line_each_and_a_short_stray_is_none():
+    """A box's corner: three folds meet at a point, each a line of its own; a ridge 4 px long
+    and two folds' pixels in one row (a line through them has gaps) are no line."""
+    barriers = np.zeros((80, 80), bool)
+    barriers[10:41, 40] = True                          # up from the corner
+    i = np.arange(40, 70)
+    barriers[i, i] = True                               # down to the right
+    barriers[i, 80 - i] = True                          # down to the left
+    barriers[5, 5:9] = True                             # a stray ridge 4 px long
+    lines = ft.fold_lines(barriers, spacing=10.0)
+    assert len(lines) == 3
+    directions = sorted(round(float(abs(line.direction[0])), 2) for line in lines)
+    assert directions == pytest.approx([0.0, np.sqrt(0.5), np.sqrt(0.5)], abs=0.02)
+    assert all(line.u1 - line.u0 >= 29 for line in lines)
+
+
+def test_corrections_carry_through_the_further_bounces():
+    """``T + T D^-1 delta``: the light added to cell i is sent on as beam i's spot's is."""
+    rng = np.random.default_rng(1)
+    T = np.eye(5) + 0.05 * rng.random((5, 5))
+    rows, cols, values = np.array([1, 3]), np.array([2, 2]), np.array([0.01, -0.02])
+    delta = np.zeros((5, 5))
+    delta[rows, cols] = values
+    expected = T + T @ np.diag(1 / np.diag(T)) @ delta
+    assert np.allclose(ft.apply_corrections(T.copy(), rows, cols, values), expected)

@@ -18,7 +18,6 @@ the fold transfer, median of 3 (the share it adds to the build).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import statistics
 import subprocess
@@ -28,15 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _sibling(name: str):
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-refine_bench = _sibling("bench_refine")
+sys.path.insert(0, str(Path(__file__).parent))
+import bench_refine as refine_bench  # noqa: E402  (the lattices, scans and errors of the refine benchmark)
 
 
 def sweep(root: Path, scene: str, electrons: float, mode: str) -> None:

@@ -4,7 +4,9 @@
 ``cells`` (each sample's cell of pixels), ``layout`` (the plan's layout: a vector of m
 samples as an image), ``build`` (``ilt build-isf``: T's columns from the frames, one
 pass), ``fine`` (the fine operator for full-resolution bounces, fitted in that pass),
-``slopes`` (the slopes of the cells it keeps flat, from their neighbours' means).
+``slopes`` (the slopes of the cells it keeps flat, from their neighbours' means),
+``fold_transfer`` (the light the cells beside each fold send across it, spread over the
+cell, which decompose adds to T).
 """
 
 from ilt import lazy_face
@@ -16,6 +18,7 @@ __getattr__, __dir__, __all__ = lazy_face(
         "cells": ["integrate", "mosaic", "voronoi_cells"],
         "directory": ["ISF", "ISFError", "load_isf", "write_isf"],
         "fine": ["FineError", "FineOperator", "fit_operator", "load_fine"],
+        "fold_transfer": ["apply_corrections", "fold_corrections"],
         "layout": ["sample_frame", "splat", "vector_to_image"],
         "slopes": ["NeighbourSlopes"],
     },

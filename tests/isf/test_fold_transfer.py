@@ -45,7 +45,8 @@ def test_a_flatland_cells_light_across_the_fold_is_the_kernels_double_integral(s
     spots = np.array([[45.5, 11.5], [spot_x, 11.5]])
     cells = ft._cell_pixels(labels, 2)
     line = vertical_line()
-    found = ft.cross_fold_corrections(line, cells, spots, spacing=12.0, frame_of=lambda k: frame, flatland=True)
+    found = ft.cross_fold_corrections(line, cells, spots, spacing=12.0, frame_of=lambda k: frame, flatland=True,
+                                      placement=0.0, min_ratio=1.0)
     assert set(found) == {(0, 1)}
     ap = FOLD - np.arange(42, 50.0)
     bq = np.maximum(np.arange(51, 63.0) - FOLD, bk / ft.MAX_SCALE)
@@ -55,6 +56,17 @@ def test_a_flatland_cells_light_across_the_fold_is_the_kernels_double_integral(s
     got = 1.0 + found[(0, 1)] / (ROWS * point)
     assert got == pytest.approx(expected, rel=0.03)
     assert 0.3 < expected < 2.0
+    # the fold's place uncertain by a quarter pixel: the correction of the three places nearest none
+    sure = ft.cross_fold_corrections(line, cells, spots, spacing=12.0, frame_of=lambda k: frame, flatland=True,
+                                     min_ratio=1.0)
+    moved = [ft.cross_fold_corrections(line.shifted(t), cells, spots, spacing=12.0, frame_of=lambda k: frame,
+                                       flatland=True, placement=0.0, min_ratio=1.0)[(0, 1)] for t in (-0.25, 0.0, 0.25)]
+    assert (0, 1) not in sure if min(moved) < 0 < max(moved) else \
+        sure[(0, 1)] == pytest.approx(min(moved, key=abs))
+    # and none within a factor MIN_RATIO of the spot's
+    small = ft.cross_fold_corrections(line, cells, spots, spacing=12.0, frame_of=lambda k: frame, flatland=True)
+    assert ((0, 1) in small) == (abs(np.log(got)) >= np.log(ft.MIN_RATIO) + 0.05) or \
+        abs(abs(np.log(got)) - np.log(ft.MIN_RATIO)) < 0.05
 
 
 def test_a_3d_cells_light_across_the_fold_is_the_kernels_double_integral():
@@ -71,7 +83,8 @@ def test_a_3d_cells_light_across_the_fold_is_the_kernels_double_integral():
     frame = np.where(x < fold, solid(np.maximum(fold - x, 1e-9), bk, y - spot[1]), 0.0)
     line = ft.FoldLine(np.array([fold, 63.5]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), -64.0, 64.0, rows)
     found = ft.cross_fold_corrections(line, ft._cell_pixels(labels, 2), np.array([[95.0, 63.5], spot]),
-                                      spacing=10.0, frame_of=lambda k: frame, flatland=False)
+                                      spacing=10.0, frame_of=lambda k: frame, flatland=False, placement=0.0,
+                                      min_ratio=1.0)
     ry, rx = np.nonzero(labels == 0)
     ey, ex = np.nonzero(labels == 1)
     point = solid(fold - rx, bk, ry - spot[1]).sum()

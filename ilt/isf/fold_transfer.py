@@ -32,6 +32,12 @@ to the spots' (half a pixel moved the M's figures by a third). Flatland or 3D
 (:func:`is_flatland`): a simulator's flatland frames are the same along the fold, a 3D
 scene's light falls off along it. ``q`` nearer the fold than ``b_k / MAX_SCALE`` is taken
 at that distance: the mapped pixels would leave the facet.
+
+Not build-isf's default (``--fold-transfer off``): it helps the sparse and uneven scans more
+than the dense ones, and then a denser scan can be worse than a sparser one in a photo's
+bounce (the M under a path tracer's noise: the projector's bounce 2 0.074 at 48 beams, 0.092
+at 96; without it 0.116 and 0.104), and a few photos' bounces get worse (the flashlight's
+bounce 2, whose direct light is a patch, not the even spread over each cell it assumes).
 """
 
 from __future__ import annotations
@@ -70,8 +76,9 @@ CAP = 4.0
 #: more: within it the cell's own light, which is not spread evenly over it (less of a room's
 #: light reaches into a fold), is as far from the even spread as that is from the spot (on the
 #: M at 16 beams, spots 10.5 and 13.5 px from a fold, corrections of +11% and -4% doubled its
-#: room photo's bounce 2 at the samples, 0.018 -> 0.040)
-MIN_RATIO = 1.5
+#: room photo's bounce 2 at the samples, 0.018 -> 0.040; 1.5 gave the noisy M's 96 beams 0.0585
+#: against 0.0514 at 1.2)
+MIN_RATIO = 1.2
 #: how far (px) the fold's place is uncertain: the far light's floor on noisy frames, against the
 #: M's exact folds (:func:`cross_fold_corrections`)
 PLACEMENT_PX = 0.25

@@ -45,7 +45,7 @@ def scan(tmp_path_factory):
                   attributes=GREEN_GRID.attributes())
         truth[k] = green_grid(scene.photo(k, n_bounces=3)[1], sensor)
     run_centroids(hdr, root / "spots", workers=1)
-    build_isf(hdr, root / "spots", root / "isf", workers=1)
+    build_isf(hdr, root / "spots", root / "isf", workers=1, fold_transfer="flatland")
     isf = load_isf(root / "isf")
     for used in (True, False):
         decompose(isf, photos, root / f"dec-{used}", n_bounces=6, fold_transfer=used)

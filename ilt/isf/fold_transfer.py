@@ -45,6 +45,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
+from scipy.ndimage import map_coordinates
 
 #: barrier pixels within this many px of a line belong to it (:func:`fold_lines`), in a run
 #: along it without a gap of more than this many px
@@ -183,8 +185,6 @@ def valley_floor(line: FoldLine, light: np.ndarray, spacing: float) -> tuple[Fol
     pixel with the noise and the valley test's smoothing: a line fitted to them was 0.7 px
     askew over 32 px on the noisy M. (Where two lines fitted to the valley's arms meet was
     tried first: 0.3 px off on noise-free frames, where this is within 0.1.)"""
-    from scipy.ndimage import map_coordinates
-
     light = np.asarray(light, np.float64)
     reach = float(np.clip(VALLEY_REACH * spacing, 3.0, 8.0))
     stretches = int((line.u1 - line.u0) // max(4.0, FLOOR_SPACINGS * spacing))
@@ -279,8 +279,6 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
     the fold than ``b_s / MAX_SCALE`` are taken there. ``facet`` (H, W) bool: where the
     receiving facet is (the scan's lit pixels); mapped pixels outside it or past the line's
     ends count none (3D: light past a fold's end is not the kernel's)."""
-    from scipy.ndimage import map_coordinates
-
     bs = abs(float(line.distance(spot[None])[0]))
     scale = bs / np.maximum(np.abs(line.distance(points)), bs / MAX_SCALE)           # (n,)
     d, u = line.distance(receiving), line.along(receiving)
@@ -320,8 +318,6 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
     ``frame_of(k)``: beam k's frame
     (H, W), on the cells' grid; ``flatland``: gamma 1 and no shift along the fold, else 3D;
     ``facet``: the scan's lit pixels (:func:`light_from`)."""
-    from scipy.ndimage import map_coordinates
-
     side = fold_sides(line, cells, spots) if side is None else side
     spot_d, spot_u = line.distance(spots), line.along(spots)
     out = {}
@@ -376,8 +372,6 @@ def homogeneity_miss(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray,
             continue
         j = min(behind, key=lambda b: abs(float(spot_d[b])) + abs(float(spot_u[b] - spot_u[k])))
         receiving = np.concatenate([_thinned(cells[i], MAX_RECEIVERS) for i in receivers])
-        from scipy.ndimage import map_coordinates
-
         far = np.asarray(frame_of(j), np.float64)
         sent = float(map_coordinates(far, [receiving[:, 1], receiving[:, 0]], order=1).sum())
         given = float(light_from(line, np.asarray(frame_of(k), np.float64), spots[k], spots[j][None], receiving,
@@ -436,8 +430,6 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
 
 def write_corrections(path, rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) -> None:
     """``fold_transfer.npz``: the corrections as a sparse (m, m) matrix."""
-    import scipy.sparse
-
     scipy.sparse.save_npz(path, scipy.sparse.coo_matrix((values, (rows, cols)), shape=(m, m)).tocsc())
 
 

@@ -33,11 +33,12 @@ to the spots' (half a pixel moved the M's figures by a third). Flatland or 3D
 scene's light falls off along it. ``q`` nearer the fold than ``b_k / MAX_SCALE`` is taken
 at that distance: the mapped pixels would leave the facet.
 
-Not build-isf's default (``--fold-transfer off``): it helps the sparse and uneven scans more
-than the dense ones, and then a denser scan can be worse than a sparser one in a photo's
-bounce (the M under a path tracer's noise: the projector's bounce 2 0.074 at 48 beams, 0.092
-at 96; without it 0.116 and 0.104), and a few photos' bounces get worse (the flashlight's
-bounce 2, whose direct light is a patch, not the even spread over each cell it assumes).
+Each cell's light is taken as spread over its pixels as the far light (:mod:`ilt.isf.folds`)
+is: it falls off toward a concave fold (a point there sees the other facet at a grazing angle,
+and less of a room's light), so the pixels nearest the fold, which send the most across it,
+hold the least. Spread evenly instead, the correction overshot: under a path tracer's noise
+the M's projector bounce 2 fell to 0.074 at 48 beams and 0.092 at 96, a denser scan worse
+(docs/fullres.md, "Across a fold").
 """
 
 from __future__ import annotations
@@ -306,7 +307,8 @@ def _receivers(line: FoldLine, cells: list[np.ndarray], side: dict[int, float], 
 def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, spacing: float,
                            frame_of, flatland: bool, side: dict[int, float] | None = None,
                            facet: np.ndarray | None = None, placement: float = PLACEMENT_PX,
-                           min_ratio: float = MIN_RATIO) -> dict[tuple[int, int], float]:
+                           min_ratio: float = MIN_RATIO, emission: np.ndarray | None = None
+                           ) -> dict[tuple[int, int], float]:
     """``{(i, k): delta}`` in frame units: for each cell k touching ``line`` whose spot lies
     within :data:`EMITTER_SPACINGS` of it, and each cell i touching it on the other side
     within two spacings along it, the light cell k sends to cell i spread over cell k's
@@ -317,7 +319,9 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
     under ``min_ratio``.
     ``frame_of(k)``: beam k's frame
     (H, W), on the cells' grid; ``flatland``: gamma 1 and no shift along the fold, else 3D;
-    ``facet``: the scan's lit pixels (:func:`light_from`)."""
+    ``facet``: the scan's lit pixels (:func:`light_from`); ``emission`` (H, W): how cell k's
+    light is spread over its pixels (None: evenly; :func:`fold_corrections` gives the far
+    light, which falls off toward the fold as a cell's light does)."""
     side = fold_sides(line, cells, spots) if side is None else side
     spot_d, spot_u = line.distance(spots), line.along(spots)
     out = {}
@@ -329,6 +333,10 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
             continue
         frame = np.asarray(frame_of(k), np.float64)
         emitters = _thinned(cells[k], MAX_EMITTERS)
+        shares = np.ones(len(emitters)) if emission is None else \
+            np.maximum(map_coordinates(emission, [emitters[:, 1], emitters[:, 0]], order=1), 0.0)
+        if not shares.sum() > 0:
+            continue
         for i in receivers:
             receiving = _thinned(cells[i], MAX_RECEIVERS)
             weight = len(cells[i]) / len(receiving)
@@ -337,8 +345,9 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
                 continue
             # the ratio with the fold where it was found and PLACEMENT_PX either side: the one
             # nearest 1, or none where they disagree on which side of 1 it lies
-            ratios = [float(np.mean(light_from(placed, frame, spots[k], emitters, receiving, flatland, facet)))
-                      * weight / point for placed in (line, *(line.shifted(t) for t in (-placement, placement)))]
+            ratios = [float(np.average(light_from(placed, frame, spots[k], emitters, receiving, flatland, facet),
+                                       weights=shares)) * weight / point
+                      for placed in (line, *(line.shifted(t) for t in (-placement, placement)))]
             if min(ratios) < 1.0 < max(ratios):
                 continue
             ratio = min(ratios, key=lambda r: abs(np.log(max(r, 1e-300))))
@@ -390,9 +399,9 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
     ends, its move to the valley floor, flatland or 3D, how far the kernel's homogeneity
     misses on its frames (:func:`homogeneity_miss`; a line missing by more than
     :data:`MAX_MISS`, or that cannot be checked, gives nothing) and the entries it gave.
-    ``solid``: at 3D folds too (else flatland ones only: at the box's 3D folds it moved the
-    errors by -3% to +3%, and a version without :data:`MIN_RATIO` made its 432 beams 7% worse,
-    docs/fullres.md)."""
+    ``solid``: at 3D folds too (else flatland ones only: at the box's 3D folds an even spread
+    moved the errors by -3% to +3%, and a version without :data:`MIN_RATIO` made its 432 beams
+    7% worse, docs/fullres.md). Each cell's light is spread as the far light ``light`` is."""
     m = len(spots)
     cells = _cell_pixels(labels, m)
     lit = labels >= 0
@@ -413,7 +422,7 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
         flatland = bool(votes) and float(np.mean(votes)) > 0.5
         used = bool(votes) and (flatland or solid)
         miss = homogeneity_miss(line, cells, spots, spacing, frame, flatland, side, lit) if used else None
-        found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, lit) \
+        found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, lit, emission=light) \
             if miss is not None and miss <= MAX_MISS else {}
         for key, value in found.items():      # a pair beside two folds (a corner): the longer line's
             entries.setdefault(key, value)

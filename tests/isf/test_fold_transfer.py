@@ -56,6 +56,16 @@ def test_a_flatland_cells_light_across_the_fold_is_the_kernels_double_integral(s
     got = 1.0 + found[(0, 1)] / (ROWS * point)
     assert got == pytest.approx(expected, rel=0.03)
     assert 0.3 < expected < 2.0
+    # the cell's light spread as the far light falls off toward the fold (a V): the kernel's sums
+    # over the emitting pixels weighted by it
+    valley = np.broadcast_to(np.abs(x - FOLD), (ROWS, COLS))
+    weighted = ft.cross_fold_corrections(line, cells, spots, spacing=12.0, frame_of=lambda k: frame, flatland=True,
+                                         placement=0.0, min_ratio=1.0, emission=valley)
+    sums = flatland(ap[:, None], bq[None, :]).sum(axis=0)
+    expected_weighted = np.average(sums, weights=np.arange(51, 63.0) - FOLD) / point
+    # (within 6%: the emitting cell's 288 pixels thinned to MAX_EMITTERS, unevenly across its columns)
+    assert 1.0 + weighted[(0, 1)] / (ROWS * point) == pytest.approx(expected_weighted, rel=0.06)
+    assert expected_weighted < expected                 # the pixels nearest the fold, which send most, count less
     # the fold's place uncertain by a quarter pixel: the correction of the three places nearest none
     sure = ft.cross_fold_corrections(line, cells, spots, spacing=12.0, frame_of=lambda k: frame, flatland=True,
                                      min_ratio=1.0)

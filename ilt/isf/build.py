@@ -707,7 +707,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
                          OUTLIER_SIGMAS, int(np.count_nonzero(clamped)), m, plan[worst], int(clamped[worst]))
         if fold_transfer != "off" and fold_valleys is not None:
             fields["fold_transfer"] = _fold_transfer(tmp, hdr, plan, on_grid, labels, fold_valleys, scales,
-                                                     fold_transfer == "all")
+                                                     fold_transfer == "all", noise, discs)
         if labels is not None and spill:
             Q = spill_matrix(spill_columns, m)
             scipy.sparse.save_npz(tmp / SPILL_FILE, Q)
@@ -740,15 +740,21 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
 
 
 def _fold_transfer(tmp: Path, hdr, plan: list[int], on_grid: np.ndarray, labels: np.ndarray, valleys,
-                   scales: np.ndarray, solid: bool) -> dict:
+                   scales: np.ndarray, solid: bool, noise=None, discs=None) -> dict:
     """``fold_transfer.npz`` (:mod:`ilt.isf.fold_transfer`) from the folds' barriers and far
-    light (``valleys``, :func:`_fold_cells`), at 3D folds too when ``solid``; the manifest's record."""
+    light (``valleys``, :func:`_fold_cells`), at 3D folds too when ``solid``; the manifest's record.
+    Each frame read again has its isolated outliers replaced (with the frames' ``noise``, each
+    spot's disc of radius ``discs`` left alone), as the pass that built T did: a firefly across
+    a fold would read as light the kernel sends."""
     from ilt.isf.fold_transfer import FILE, fold_corrections, write_corrections
 
     barriers, light, spacing = valleys
 
     def frame_of(k):
-        return load_frame(hdr.files[plan[k]], hdr.frame_shape)
+        frame = load_frame(hdr.files[plan[k]], hdr.frame_shape)
+        if noise is not None:
+            clamp_isolated(frame, noise, on_grid[k], float(discs[k]))
+        return frame
 
     rows, cols, values, lines = fold_corrections(labels, on_grid, barriers, light, spacing, frame_of, scales, solid)
     write_corrections(tmp / FILE, rows, cols, values, len(plan))

@@ -101,7 +101,6 @@ class FoldLine:
     normal: np.ndarray
     u0: float
     u1: float
-    pixels: int
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(n,) signed distance (px) of (n, 2) points from the line, along its normal."""
@@ -112,8 +111,7 @@ class FoldLine:
 
     def shifted(self, offset: float) -> FoldLine:
         """The line moved ``offset`` px along its normal."""
-        return FoldLine(self.centre + offset * self.normal, self.direction, self.normal, self.u0, self.u1,
-                        self.pixels)
+        return FoldLine(self.centre + offset * self.normal, self.direction, self.normal, self.u0, self.u1)
 
 
 def _longest_run(along: np.ndarray) -> np.ndarray:
@@ -159,7 +157,7 @@ def fold_lines(barriers: np.ndarray, spacing: float, seed: int = 0, tries: int =
         if u.max() - u.min() + 1.0 < need - 0.5:       # (a line of pixels counts them: rounding)
             break
         lines.append(FoldLine(centre, direction, np.array([-direction[1], direction[0]]), float(u.min()) - 0.5,
-                              float(u.max()) + 0.5, len(chosen)))
+                              float(u.max()) + 0.5))
         points = np.delete(points, best, axis=0)
     return lines
 
@@ -214,7 +212,7 @@ def valley_floor(line: FoldLine, light: np.ndarray, spacing: float) -> tuple[Fol
     normal = np.array([-direction[1], direction[0]])
     if normal @ line.normal < 0:
         normal = -normal
-    return FoldLine(line.centre + offset * line.normal, direction, normal, line.u0, line.u1, line.pixels), \
+    return FoldLine(line.centre + offset * line.normal, direction, normal, line.u0, line.u1), \
         float(offset)
 
 

@@ -21,7 +21,7 @@ def solid(a, b, du):
 
 def vertical_line(x=FOLD):
     return ft.FoldLine(np.array([x, (ROWS - 1) / 2]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]),
-                       -(ROWS - 1) / 2 - 0.5, (ROWS - 1) / 2 + 0.5, ROWS)
+                       -(ROWS - 1) / 2 - 0.5, (ROWS - 1) / 2 + 0.5)
 
 
 def cells_across(receiving=(42, 49), emitting=(51, 62)):
@@ -91,7 +91,7 @@ def test_a_3d_cells_light_across_the_fold_is_the_kernels_double_integral():
     spot = np.array([108.0, 63.5])
     bk = spot[0] - fold
     frame = np.where(x < fold, solid(np.maximum(fold - x, 1e-9), bk, y - spot[1]), 0.0)
-    line = ft.FoldLine(np.array([fold, 63.5]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), -64.0, 64.0, rows)
+    line = ft.FoldLine(np.array([fold, 63.5]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), -64.0, 64.0)
     found = ft.cross_fold_corrections(line, ft._cell_pixels(labels, 2), np.array([[95.0, 63.5], spot]),
                                       spacing=10.0, frame_of=lambda k: frame, flatland=False, placement=0.0,
                                       min_ratio=1.0)

@@ -101,6 +101,13 @@ def test_a_3d_cells_light_across_the_fold_is_the_kernels_double_integral():
     bq = np.maximum(ex - fold, bk / ft.MAX_SCALE)
     spread = np.mean([solid(fold - rx, b, ry - v).sum() for b, v in zip(bq, ey)])
     assert 1.0 + found[(0, 1)] / point == pytest.approx(spread / point, rel=0.03)
+    # within a spacing of the line's end (a box's corner, the scene's rim) none: past the end the
+    # frame scaled about the fold holds another face's light, or none
+    cells, spots = ft._cell_pixels(labels, 2), np.array([[95.0, 63.5], spot])
+    near_ends = dict(spacing=10.0, frame_of=lambda k: frame, flatland=False, placement=0.0, min_ratio=1.0, ends=10.0)
+    assert ft.cross_fold_corrections(line, cells, spots, **near_ends) == found
+    short = ft.FoldLine(line.centre, line.direction, line.normal, -64.0, 12.0)      # ends 6.5 px past the cells
+    assert ft.cross_fold_corrections(short, cells, spots, **near_ends) == {}
     lit = np.ones(frame.shape, bool)
     assert ft.is_flatland(line, frame, spot, lit) is False
     flat = np.broadcast_to(frame[int(spot[1])], frame.shape)

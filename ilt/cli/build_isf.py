@@ -56,7 +56,7 @@ from ilt.workspace.options import BUILD_ISF
                    "spread as the far beams' light falls off toward the fold. 'flatland' (default): at the folds "
                    "whose light is the same along them (a flatland scene's: the M's and textured M's scans up to "
                    "22% better, noisy or not, the uneven ones up to 40%); 'all': at 3D folds too, away from their "
-                   "ends (the box: -3% to +1%); "
+                   "ends (the box: -5% to +1%); "
                    "'off'. It reads the frames of the beams beside the folds again (docs/fullres.md, 'Across a "
                    "fold').")
 @click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",

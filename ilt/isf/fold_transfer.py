@@ -302,6 +302,15 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
     return scale ** (1.0 if flatland else 2.0) * values.sum(axis=1)
 
 
+def away_from_ends(line: FoldLine, cells: list[np.ndarray], side: dict[int, float], ends: float
+                   ) -> dict[int, float]:
+    """``side`` less the cells with a pixel within ``ends`` px of the line's ends (none when 0)."""
+    if ends <= 0:
+        return side
+    return {j: s for j, s in side.items()
+            if np.all((line.along(cells[j]) > line.u0 + ends) & (line.along(cells[j]) < line.u1 - ends))}
+
+
 def _receivers(line: FoldLine, cells: list[np.ndarray], side: dict[int, float], k: int, u: float,
                reach: float) -> list[int]:
     return [i for i, si in side.items() if si != side[k] and np.abs(line.along(cells[i]) - u).min() <= reach]
@@ -327,11 +336,8 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
     light, which falls off toward the fold as a cell's light does); ``ends`` (px): cells with
     a pixel within it of the line's ends neither send nor receive a correction (3D folds,
     :data:`END_SPACINGS`)."""
-    side = fold_sides(line, cells, spots) if side is None else side
+    side = away_from_ends(line, cells, fold_sides(line, cells, spots) if side is None else side, ends)
     spot_d, spot_u = line.distance(spots), line.along(spots)
-    if ends > 0:
-        side = {j: s for j, s in side.items()
-                if np.all((line.along(cells[j]) > line.u0 + ends) & (line.along(cells[j]) < line.u1 - ends))}
     out = {}
     for k in side:
         if abs(float(spot_d[k])) > EMITTER_SPACINGS * spacing:
@@ -408,7 +414,7 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
     misses on its frames (:func:`homogeneity_miss`; a line missing by more than
     :data:`MAX_MISS`, or that cannot be checked, gives nothing) and the entries it gave.
     ``solid``: at 3D folds too, the cells near their ends left (:data:`END_SPACINGS`; else
-    flatland ones only: at the box's 3D folds the errors move by -3% to +1%, docs/fullres.md).
+    flatland ones only: at the box's 3D folds the errors move by -5% to +1%, docs/fullres.md).
     Each cell's light is spread as the far light ``light`` is."""
     m = len(spots)
     cells = _cell_pixels(labels, m)
@@ -429,9 +435,10 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
         votes = [v for v in (is_flatland(line, frame(k), spots[k], lit) for k in near[:5]) if v is not None]
         flatland = bool(votes) and float(np.mean(votes)) > 0.5
         used = bool(votes) and (flatland or solid)
+        # at a 3D fold the cells near the line's ends neither checked nor corrected
+        side = away_from_ends(line, cells, side, 0.0 if flatland else END_SPACINGS * spacing)
         miss = homogeneity_miss(line, cells, spots, spacing, frame, flatland, side, lit) if used else None
-        found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, lit, emission=light,
-                                       ends=0.0 if flatland else END_SPACINGS * spacing) \
+        found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, lit, emission=light) \
             if miss is not None and miss <= MAX_MISS else {}
         for key, value in found.items():      # a pair beside two folds (a corner): the longer line's
             entries.setdefault(key, value)
@@ -468,5 +475,5 @@ def apply_corrections(T: np.ndarray, rows: np.ndarray, cols: np.ndarray, values:
 
 
 __all__ = ["FILE", "FoldLine", "apply_corrections", "cross_fold_corrections", "fold_corrections", "fold_lines",
-           "fold_sides", "homogeneity_miss", "is_flatland", "light_from", "valley_floor",
+           "fold_sides", "homogeneity_miss", "away_from_ends", "is_flatland", "light_from", "valley_floor",
            "write_corrections"]

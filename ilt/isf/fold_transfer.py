@@ -88,11 +88,18 @@ PLACEMENT_PX = 0.25
 #: a line's kernel is checked on this many pairs of beams (:func:`homogeneity_miss`), and the
 #: line is no fold of two planes where it misses by more than this share
 CHECKS, MAX_MISS = 6, 0.5
-#: at a 3D fold, cells within this many spot spacings of the line's ends send and receive no
-#: correction: past an end the facets stop (the scene's rim) or meet a third (a box's corner),
-#: and the frame scaled about the fold reads that face's light as the two planes' kernel (the
-#: box's 432 beams: 8% worse with the corner's cells corrected, 0.9% without)
-END_SPACINGS = 1.0
+#: at a 3D fold, a cell touching it sends to every cell across it with a pixel within this
+#: many spot spacings of the line and its spot within as many along it: a spot nearer the fold
+#: than its cell's pixels sends too much to the cell straight across and too little to those
+#: beyond it (the light a point sends to the facet across is the same wherever it lies), so the
+#: cells touching the fold on the other side alone took only half of the correction (the box's
+#: 108 beams, noise-free, against the renderer's T with each cell's light spread evenly: 0.0593
+#: with them alone, 0.0563 with these, 0.0528 exact; 5 and 100 spacings as 3)
+RECEIVER_SPACINGS = 3.0
+#: a line's kernel is checked on beams 1.5 to this many times as far from it as the beam in
+#: front (flatland: 4; at 3D folds as far as the scaling reaches, :data:`MAX_SCALE`: the box's
+#: 147 and 192 beams have their second row 6 times as far from each crease as the first)
+CHECK_REACH_FLATLAND = 4.0
 FILE = "fold_transfer.npz"
 
 
@@ -275,14 +282,16 @@ def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray) -> di
 
 
 def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.ndarray, receiving: np.ndarray,
-               flatland: bool, facet: np.ndarray | None = None) -> np.ndarray:
+               flatland: bool, facet: np.ndarray | None = None, seen: np.ndarray | None = None):
     """(n,) the light points (n, 2) on the spot's side of ``line`` send to the pixels
     ``receiving`` (r, 2) across it, from the spot's ``frame`` by the kernel's homogeneity
     (module docstring): ``(b_s / b_q)^gamma`` times the frame summed over the receiving
     pixels scaled about the fold by ``b_s / b_q`` (3D: and shifted along it). Points nearer
     the fold than ``b_s / MAX_SCALE`` are taken there. ``facet`` (H, W) bool: where the
     receiving facet is (the scan's lit pixels); mapped pixels outside it or past the line's
-    ends count none (3D: light past a fold's end is not the kernel's)."""
+    ends count none (3D: light past a fold's end is not the kernel's). With ``seen`` (r,)
+    weights of the receiving pixels, also returns (n,) their sums over the pixels whose mapped
+    point counts: the point's light over the same pixels, where the spread's is known."""
     bs = abs(float(line.distance(spot[None])[0]))
     scale = bs / np.maximum(np.abs(line.distance(points)), bs / MAX_SCALE)           # (n,)
     d, u = line.distance(receiving), line.along(receiving)
@@ -293,22 +302,16 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
     mapped = line.centre + along[..., None] * line.direction + (scale[:, None] * d[None, :])[..., None] * line.normal
     values = map_coordinates(frame, [mapped[..., 1].ravel(), mapped[..., 0].ravel()], order=1,
                              cval=0.0).reshape(len(scale), len(u))
+    known = np.ones(values.shape, bool)
     if facet is not None:
         # past the facet (beyond the fold's ends, or where the scan's light ends) the frame
         # holds other surfaces' light, not the kernel's: none
-        values *= map_coordinates(facet.astype(np.float32), [mapped[..., 1].ravel(), mapped[..., 0].ravel()],
-                                  order=0, cval=0.0).reshape(values.shape)
-        values *= (along >= line.u0) & (along <= line.u1)
-    return scale ** (1.0 if flatland else 2.0) * values.sum(axis=1)
-
-
-def away_from_ends(line: FoldLine, cells: list[np.ndarray], side: dict[int, float], ends: float
-                   ) -> dict[int, float]:
-    """``side`` less the cells with a pixel within ``ends`` px of the line's ends (none when 0)."""
-    if ends <= 0:
-        return side
-    return {j: s for j, s in side.items()
-            if np.all((line.along(cells[j]) > line.u0 + ends) & (line.along(cells[j]) < line.u1 - ends))}
+        known = map_coordinates(facet.astype(np.float32), [mapped[..., 1].ravel(), mapped[..., 0].ravel()],
+                                order=0, cval=0.0).reshape(values.shape) > 0
+        known &= (along >= line.u0) & (along <= line.u1)
+        values *= known
+    light = scale ** (1.0 if flatland else 2.0) * values.sum(axis=1)
+    return light if seen is None else (light, known.astype(np.float64) @ seen)
 
 
 def _receivers(line: FoldLine, cells: list[np.ndarray], side: dict[int, float], k: int, u: float,
@@ -316,11 +319,28 @@ def _receivers(line: FoldLine, cells: list[np.ndarray], side: dict[int, float], 
     return [i for i, si in side.items() if si != side[k] and np.abs(line.along(cells[i]) - u).min() <= reach]
 
 
+def _receivers_across(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, k: int, s: float,
+                      reach: float) -> list[int]:
+    """At a 3D fold: every cell on the other side of ``line`` from cell k (side ``s``; its
+    spot there too, within the line's extent) with a pixel within ``reach`` px of the line and
+    its spot within ``reach`` along it from k's (:data:`RECEIVER_SPACINGS`)."""
+    spot_d, spot_u = line.distance(spots), line.along(spots)
+    out = []
+    for i, pixels in enumerate(cells):
+        if i == k or len(pixels) == 0 or np.sign(spot_d[i]) != -s or not line.u0 <= spot_u[i] <= line.u1 or \
+                abs(float(spot_u[i] - spot_u[k])) > reach:
+            continue
+        d = line.distance(pixels)
+        if np.abs(d).min() <= reach and np.mean(np.sign(d) == -s) >= SIDE_SHARE:
+            out.append(i)
+    return out
+
+
 def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, spacing: float,
                            frame_of, flatland: bool, side: dict[int, float] | None = None,
                            facet: np.ndarray | None = None, placement: float = PLACEMENT_PX,
-                           min_ratio: float = MIN_RATIO, emission: np.ndarray | None = None,
-                           ends: float = 0.0) -> dict[tuple[int, int], float]:
+                           min_ratio: float = MIN_RATIO, emission: np.ndarray | None = None
+                           ) -> dict[tuple[int, int], float]:
     """``{(i, k): delta}`` in frame units: for each cell k touching ``line`` whose spot lies
     within :data:`EMITTER_SPACINGS` of it, and each cell i touching it on the other side
     within two spacings along it, the light cell k sends to cell i spread over cell k's
@@ -333,29 +353,47 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
     (H, W), on the cells' grid; ``flatland``: gamma 1 and no shift along the fold, else 3D;
     ``facet``: the scan's lit pixels (:func:`light_from`); ``emission`` (H, W): how cell k's
     light is spread over its pixels (None: evenly; :func:`fold_corrections` gives the far
-    light, which falls off toward the fold as a cell's light does); ``ends`` (px): cells with
-    a pixel within it of the line's ends neither send nor receive a correction (3D folds,
-    :data:`END_SPACINGS`)."""
-    side = away_from_ends(line, cells, fold_sides(line, cells, spots) if side is None else side, ends)
+    light, which falls off toward the fold as a cell's light does).
+
+    At a 3D fold (not ``flatland``) cell k sends to every cell across within
+    :data:`RECEIVER_SPACINGS` (:func:`_receivers_across`), its light spread evenly (the far
+    light is a flatland scan's proxy: on the box's creases it made the 432 beams 5% worse where
+    the even spread makes them 3% better), every correction made (neither ``placement`` nor
+    ``min_ratio``: on the box each cost 1-2%), and each ratio taken over the receiving pixels
+    whose mapped points lie on the facet within the line's extent: past a fold's end (a box's
+    corner, the scene's rim) the frame holds another face's light, or none, and counted as none
+    it took the corrections there 25% high (the corner's cells, against the renderer's T spread
+    evenly)."""
+    side = fold_sides(line, cells, spots) if side is None else side
     spot_d, spot_u = line.distance(spots), line.along(spots)
     out = {}
     for k in side:
         if abs(float(spot_d[k])) > EMITTER_SPACINGS * spacing:
             continue
-        receivers = _receivers(line, cells, side, k, spot_u[k], 2.0 * spacing)
+        receivers = _receivers(line, cells, side, k, spot_u[k], 2.0 * spacing) if flatland else \
+            _receivers_across(line, cells, spots, k, side[k], RECEIVER_SPACINGS * spacing)
         if not receivers:
             continue
         frame = np.asarray(frame_of(k), np.float64)
         emitters = _thinned(cells[k], MAX_EMITTERS)
-        shares = np.ones(len(emitters)) if emission is None else \
+        shares = np.ones(len(emitters)) if emission is None or not flatland else \
             np.maximum(map_coordinates(emission, [emitters[:, 1], emitters[:, 0]], order=1), 0.0)
         if not shares.sum() > 0:
             continue
         for i in receivers:
             receiving = _thinned(cells[i], MAX_RECEIVERS)
             weight = len(cells[i]) / len(receiving)
-            point = float(map_coordinates(frame, [receiving[:, 1], receiving[:, 0]], order=1).sum()) * weight
+            own = map_coordinates(frame, [receiving[:, 1], receiving[:, 0]], order=1)
+            point = float(own.sum()) * weight
             if not point > 0:
+                continue
+            if not flatland:
+                spread, seen = light_from(line, frame, spots[k], emitters, receiving, False, facet, seen=own)
+                known = seen > 0
+                if not known.any():
+                    continue
+                ratio = float(shares[known] @ spread[known]) / float(shares[known] @ seen[known])
+                out[(i, k)] = (np.clip(ratio, 1.0 / CAP, CAP) - 1.0) * point
                 continue
             # the ratio with the fold where it was found and PLACEMENT_PX either side: the one
             # nearest 1, or none where they disagree on which side of 1 it lies
@@ -375,20 +413,22 @@ def homogeneity_miss(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray,
                      flatland: bool, side: dict[int, float], facet: np.ndarray | None = None) -> float | None:
     """How far the kernel's homogeneity about ``line`` misses on the scan's own frames: for
     up to :data:`CHECKS` beams k whose cell touches the fold, the beam k' behind it on the
-    same side (its spot 1.5-4 times as far from the fold, within a spacing along it), the
+    same side (its spot 1.5 to :data:`CHECK_REACH_FLATLAND` times as far from the fold, at 3D
+    folds to :data:`MAX_SCALE` times, within a spacing along it), the
     light k' sends to the cells touching the fold across from k, against what k's frame
     gives for a point at k''s spot (:func:`light_from`): the median of ``|given / sent - 1|``.
     None when no such pair lies about the line. On a concave fold between two planes it is
     small (the M's folds 0.02-0.1); a line that is no such fold (a silhouette's valley, a
     shadow's edge) misses."""
     spot_d, spot_u = line.distance(spots), line.along(spots)
+    reach = CHECK_REACH_FLATLAND if flatland else MAX_SCALE
     misses = []
     for k in side:
         if len(misses) >= CHECKS:
             break
         bk = abs(float(spot_d[k]))
         behind = [j for j in range(len(spots)) if np.sign(spot_d[j]) == side[k] and
-                  1.5 * bk <= abs(float(spot_d[j])) <= 4.0 * bk and
+                  1.5 * bk <= abs(float(spot_d[j])) <= reach * bk and
                   (flatland or abs(float(spot_u[j] - spot_u[k])) <= spacing)]
         receivers = _receivers(line, cells, side, k, spot_u[k], spacing)
         if not behind or not receivers:
@@ -413,9 +453,9 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
     ends, its move to the valley floor, flatland or 3D, how far the kernel's homogeneity
     misses on its frames (:func:`homogeneity_miss`; a line missing by more than
     :data:`MAX_MISS`, or that cannot be checked, gives nothing) and the entries it gave.
-    ``solid``: at 3D folds too, the cells near their ends left (:data:`END_SPACINGS`; else
-    flatland ones only: at the box's 3D folds the errors move by -5% to +1%, docs/fullres.md).
-    Each cell's light is spread as the far light ``light`` is."""
+    ``solid``: at 3D folds too (:func:`cross_fold_corrections`; the box's scans 3-10% better,
+    docs/fullres.md), else flatland ones only. At flatland folds each cell's light is spread as
+    the far light ``light`` is."""
     m = len(spots)
     cells = _cell_pixels(labels, m)
     lit = labels >= 0
@@ -435,8 +475,6 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
         votes = [v for v in (is_flatland(line, frame(k), spots[k], lit) for k in near[:5]) if v is not None]
         flatland = bool(votes) and float(np.mean(votes)) > 0.5
         used = bool(votes) and (flatland or solid)
-        # at a 3D fold the cells near the line's ends neither checked nor corrected
-        side = away_from_ends(line, cells, side, 0.0 if flatland else END_SPACINGS * spacing)
         miss = homogeneity_miss(line, cells, spots, spacing, frame, flatland, side, lit) if used else None
         found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, lit, emission=light) \
             if miss is not None and miss <= MAX_MISS else {}
@@ -475,5 +513,5 @@ def apply_corrections(T: np.ndarray, rows: np.ndarray, cols: np.ndarray, values:
 
 
 __all__ = ["FILE", "FoldLine", "apply_corrections", "cross_fold_corrections", "fold_corrections", "fold_lines",
-           "fold_sides", "homogeneity_miss", "away_from_ends", "is_flatland", "light_from", "valley_floor",
+           "fold_sides", "homogeneity_miss", "is_flatland", "light_from", "valley_floor",
            "write_corrections"]

@@ -101,13 +101,26 @@ def test_a_3d_cells_light_across_the_fold_is_the_kernels_double_integral():
     bq = np.maximum(ex - fold, bk / ft.MAX_SCALE)
     spread = np.mean([solid(fold - rx, b, ry - v).sum() for b, v in zip(bq, ey)])
     assert 1.0 + found[(0, 1)] / point == pytest.approx(spread / point, rel=0.03)
-    # within a spacing of the line's end (a box's corner, the scene's rim) none: past the end the
-    # frame scaled about the fold holds another face's light, or none
-    cells, spots = ft._cell_pixels(labels, 2), np.array([[95.0, 63.5], spot])
-    near_ends = dict(spacing=10.0, frame_of=lambda k: frame, flatland=False, placement=0.0, min_ratio=1.0, ends=10.0)
-    assert ft.cross_fold_corrections(line, cells, spots, **near_ends) == found
+    # a cell across the fold that does not touch it gets its share too (the light a point sends
+    # to the facet across is the same wherever the point lies: the spot's excess straight across
+    # is the cells' beyond), and so does one whose frame reaches past the line's end, over the
+    # pixels whose scaled points lie within it (beyond, the frame shows another face, or nothing)
+    labels[58:70, 79:90] = 2
+    cells, spots = ft._cell_pixels(labels, 3), np.array([[95.0, 63.5], spot, [84.5, 63.5]])
     short = ft.FoldLine(line.centre, line.direction, line.normal, -64.0, 12.0)      # ends 6.5 px past the cells
-    assert ft.cross_fold_corrections(short, cells, spots, **near_ends) == {}
+    for fold_line in (line, short):
+        found = ft.cross_fold_corrections(fold_line, cells, spots, spacing=10.0, frame_of=lambda k: frame,
+                                          flatland=False)
+        assert set(found) == {(0, 1), (2, 1)}
+        ratios = []
+        for i in (0, 2):
+            ry, rx = np.nonzero(labels == i)
+            point = solid(fold - rx, bk, ry - spot[1]).sum()
+            spread = np.mean([solid(fold - rx, b, ry - v).sum() for b, v in zip(bq, ey)])
+            assert 1.0 + found[(i, 1)] / point == pytest.approx(spread / point, rel=0.05)
+            ratios.append(spread / point)
+        # the spot 8 px from the fold, its cell's pixels 1-11: the near cell gains, the far one loses
+        assert ratios[0] > 1.1 and ratios[1] < 0.9
     lit = np.ones(frame.shape, bool)
     assert ft.is_flatland(line, frame, spot, lit) is False
     flat = np.broadcast_to(frame[int(spot[1])], frame.shape)

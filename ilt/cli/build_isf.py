@@ -52,13 +52,11 @@ from ilt.workspace.options import BUILD_ISF
               help="With fold cells, also measure the light the cells beside each fold send across it spread "
                    "over the cell, not from its spot alone (fold_transfer.npz; 'ilt decompose' adds it to T): "
                    "facets light each other the more, the nearer the fold, and a spot a few pixels further "
-                   "from the fold than its cell's pixels stands for them badly; each cell's light taken as "
-                   "spread as the far beams' light falls off toward the fold. 'flatland' (default): at the folds "
-                   "whose light is the same along them (a flatland scene's: the M's and textured M's scans up to "
-                   "22% better, noisy or not, the uneven ones up to 40%); 'all': at 3D folds too, away from their "
-                   "ends (the box: -5% to +1%); "
-                   "'off'. It reads the frames of the beams beside the folds again (docs/fullres.md, 'Across a "
-                   "fold').")
+                   "from the fold than its cell's pixels stands for them badly. 'all' (default): at every fold "
+                   "(the box's scans up to 28% better, the M's and textured M's up to 22%, the uneven ones up to "
+                   "40%); 'flatland': only at the folds whose light is the same along them (a flatland "
+                   "scene's); 'off'. It reads the frames of the beams beside the folds again (docs/fullres.md, "
+                   "'Across a fold').")
 @click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",
               help="An earlier build of the same scene and camera (its ISF directory, or its cells.exr): every "
                    "pixel its cells covered stays covered, so that a denser rescan covers at least what it "

@@ -459,7 +459,7 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
               chunk: int = 16, progress=None, force: bool = False, frame_cache=None,
               fine_degree: int | None = DEFAULT_DEGREE, spill: bool = True, lambertian: bool = True,
               keep_covered: str | os.PathLike | None = None, fold_cells: bool = True,
-              fold_transfer: str = "flatland") -> dict:
+              fold_transfer: str = "all") -> dict:
     """Build the ISF directory ``out`` from ``hdr_dir`` frames and ``spots_dir`` centroids.
 
     Writes T.npy (m, m) float64 unit columns, scales.npy (m,) float64 column 2-norms of
@@ -488,8 +488,8 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
     about its spot again. ``fold_transfer`` (with fold cells): also write ``fold_transfer.npz``,
     the light the cells beside each fold send across it, spread over the cell rather than
     at its spot (:mod:`ilt.isf.fold_transfer`), reading the frames of the beams beside the
-    folds again: ``"flatland"`` at the folds a flatland scene's frames show, ``"all"`` at 3D
-    folds too (measured mixed on the box, docs/fullres.md), ``"off"``.
+    folds again: ``"all"`` at every fold, ``"flatland"`` only at those a flatland scene's
+    frames show, ``"off"`` (docs/fullres.md, "Across a fold").
     """
     if sampling not in SAMPLINGS:
         raise BuildError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")

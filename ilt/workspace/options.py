@@ -107,7 +107,7 @@ BUILD_ISF = _table(
     StageOption("fine_degree", "fine-degree", 1, click.IntRange(0, 2)),
     StageOption("no_fine", "no-fine", False),
     StageOption("fold_cells", "fold-cells", True),
-    StageOption("fold_transfer", "fold-transfer", "flatland", click.Choice(["flatland", "all", "off"])),
+    StageOption("fold_transfer", "fold-transfer", "all", click.Choice(["flatland", "all", "off"])),
     WORKERS,
 )
 

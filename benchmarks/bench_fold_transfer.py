@@ -94,7 +94,7 @@ def main():
     ap.add_argument("--scenes", default="m,box")
     ap.add_argument("--electrons", type=float, default=2e4, help="0: noise-free frames")
     ap.add_argument("--scratch", type=Path, required=True)
-    ap.add_argument("--fold-transfer", default="flatland", choices=["flatland", "all"],
+    ap.add_argument("--fold-transfer", default="all", choices=["flatland", "all"],
                     help="build-isf's --fold-transfer (the box's folds are 3D: 'all' corrects them)")
     ap.add_argument("--timing-beams", type=int, default=0)
     args = ap.parse_args()

@@ -289,7 +289,8 @@ def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray) -> di
 
 
 def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.ndarray, receiving: np.ndarray,
-               flatland: bool, facet: np.ndarray | None = None, seen: np.ndarray | None = None):
+               flatland: bool, facet: np.ndarray | None = None, seen: np.ndarray | None = None,
+               groups: np.ndarray | None = None, counts: np.ndarray | None = None):
     """(n,) the light points (n, 2) on the spot's side of ``line`` send to the pixels
     ``receiving`` (r, 2) across it, from the spot's ``frame`` by the kernel's homogeneity
     (module docstring): ``(b_s / b_q)^gamma`` times the frame summed over the receiving
@@ -298,7 +299,11 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
     receiving facet is (the scan's lit pixels); mapped pixels outside it or past the line's
     ends count none (3D: light past a fold's end is not the kernel's). With ``seen`` (r,)
     weights of the receiving pixels, also returns (n,) their sums over the pixels whose mapped
-    point counts: the point's light over the same pixels, where the spread's is known."""
+    point counts: the point's light over the same pixels, where the spread's is known. With
+    ``groups`` (g,) the start of each of g receiving cells in ``receiving`` (increasing),
+    both are (n, g): each cell's own sums, from one pass over them all. ``counts`` (r,): how
+    many pixels each receiving point stands for (:func:`quadrature`; ``seen`` then holds
+    their sums)."""
     bs = abs(float(line.distance(spot[None])[0]))
     nearest = bs / MAX_SCALE if flatland else max(bs / MAX_SCALE, min(bs, NEAR_PX))
     scale = bs / np.maximum(np.abs(line.distance(points)), nearest)           # (n,)
@@ -318,7 +323,13 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
                                 order=0, cval=0.0).reshape(values.shape) > 0
         known &= (along >= line.u0) & (along <= line.u1)
         values *= known
-    light = scale ** (1.0 if flatland else 2.0) * values.sum(axis=1)
+    if counts is not None:
+        values *= counts[None, :]
+    gain = scale ** (1.0 if flatland else 2.0)
+    if groups is not None:
+        light = gain[:, None] * np.add.reduceat(values, groups, axis=1)
+        return light if seen is None else (light, np.add.reduceat(known * seen[None, :], groups, axis=1))
+    light = gain * values.sum(axis=1)
     return light if seen is None else (light, known.astype(np.float64) @ seen)
 
 
@@ -341,6 +352,87 @@ def _receivers_across(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray
         d = line.distance(pixels)
         if np.abs(d).min() <= reach and np.mean(np.sign(d) == -s) >= SIDE_SHARE:
             out.append(i)
+    return out
+
+
+#: at most this many (emitting pixel, receiving pixel) pairs mapped at once (:func:`_across_3d`)
+BATCH_PAIRS = 2_000_000
+#: a 3D fold's cells of more than :data:`EXACT_PIXELS` pixels are binned (:func:`quadrature`)
+#: in bins this share of their distance from the fold (plus 2 px) across, twice that along it
+QUADRATURE = 0.1
+#: cells up to this many pixels keep every pixel (:func:`quadrature`)
+EXACT_PIXELS = 256
+
+
+def quadrature(line: FoldLine, pixels: np.ndarray, share: float = QUADRATURE, count: int = MAX_EMITTERS
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """((q, 2) points, (q,) weights, (n,) bin of each pixel): a cell's ``pixels`` (n, 2) as
+    at most ``count`` points, each the mean of the pixels in its bin and weighted by their
+    number; up to :data:`EXACT_PIXELS` pixels, each its own. The light a point sends across a
+    fold, and the light a point across it receives, change over a distance in proportion to
+    the point's own from the fold (the kernel is homogeneous about it), so bins grow with it:
+    ``share`` x (distance + 2 px) across, twice that along; near the fold every pixel keeps
+    its own bin. Past ``count`` bins, ``share`` grows 1.5x until they fit. On the box's 48
+    beams at 20 px a beam (cells of 400 px) the corrections are within 1.4% of every pixel's
+    (summed over the entries; the 256 pixels taken evenly before were within 6.6%) and take a
+    fifth of their time; small cells' bins would be a pixel or two and save little (the box's
+    432 beams, cells of 35 px, at 0.1: 9% off in a longer time), so they keep every pixel."""
+    n = len(pixels)
+    if n <= EXACT_PIXELS:
+        return pixels.astype(np.float64), np.ones(n), np.arange(n)
+    d, u = np.abs(line.distance(pixels)), line.along(pixels)
+    while True:
+        ring = np.floor(np.log1p(d / 2.0) / np.log1p(share)).astype(np.int64)
+        width = 2.0 * share * 2.0 * (1.0 + share) ** ring       # twice the ring's width across, at its inner edge
+        step = np.floor(u / np.maximum(width, 1.0)).astype(np.int64)
+        step -= step.min()
+        _, bin_of, counts = np.unique(ring * (int(step.max()) + 1) + step, return_inverse=True, return_counts=True)
+        if len(counts) <= count:
+            break
+        share *= 1.5
+    bin_of = bin_of.ravel()
+    points = np.stack([np.bincount(bin_of, pixels[:, c].astype(np.float64)) for c in range(2)], axis=1)
+    return points / counts[:, None], counts.astype(np.float64), bin_of
+
+
+def _across_3d(line: FoldLine, cells: list[np.ndarray], spot: np.ndarray, k: int, receivers: list[int],
+               frame: np.ndarray, emitters: np.ndarray, weights: np.ndarray, facet: np.ndarray | None,
+               binned: dict[int, tuple]) -> dict[tuple[int, int], float]:
+    """At a 3D fold: ``{(i, k): delta}`` for the ``receivers`` of cell k (its pixels as
+    ``emitters`` (q, 2) with ``weights`` (q,), :func:`quadrature`, as are the receivers'; beam k's
+    ``frame``), cell k's light spread evenly, each ratio over the receiving pixels whose
+    mapped points count (:func:`cross_fold_corrections`); the receivers mapped together,
+    :data:`BATCH_PAIRS` pixel pairs at a time (on the box's 432 beams each emitting cell has
+    some 19 receivers). ``binned``: the receivers' :func:`quadrature` by cell, filled as met."""
+    out = {}
+    chosen, points, parts = [], [], []
+    for i in receivers:
+        own = map_coordinates(frame, [cells[i][:, 1], cells[i][:, 0]], order=1)
+        point = float(own.sum())
+        if point > 0:
+            if i not in binned:
+                binned[i] = quadrature(line, cells[i], count=MAX_RECEIVERS)
+            receiving, counts, bin_of = binned[i]
+            chosen.append(i)
+            points.append(point)
+            parts.append((receiving, np.bincount(bin_of, own, len(counts)), counts))
+    start = 0
+    while start < len(chosen):
+        stop, pairs = start, 0
+        while stop < len(chosen) and (stop == start or pairs + len(emitters) * len(parts[stop][0]) <= BATCH_PAIRS):
+            pairs += len(emitters) * len(parts[stop][0])
+            stop += 1
+        sizes = [len(parts[j][0]) for j in range(start, stop)]
+        groups = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        spread, seen = light_from(line, frame, spot, emitters, np.concatenate([parts[j][0] for j in range(start, stop)]),
+                                  False, facet, seen=np.concatenate([parts[j][1] for j in range(start, stop)]),
+                                  groups=groups, counts=np.concatenate([parts[j][2] for j in range(start, stop)]))
+        for g, j in enumerate(range(start, stop)):
+            known = seen[:, g] > 0
+            if known.any():
+                ratio = float(weights[known] @ spread[known, g]) / float(weights[known] @ seen[known, g])
+                out[(chosen[j], k)] = (np.clip(ratio, 1.0 / CAP, CAP) - 1.0) * points[j]
+        start = stop
     return out
 
 
@@ -374,7 +466,7 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
     evenly)."""
     side = fold_sides(line, cells, spots) if side is None else side
     spot_d, spot_u = line.distance(spots), line.along(spots)
-    out = {}
+    out, binned = {}, {}
     for k in side:
         if abs(float(spot_d[k])) > EMITTER_SPACINGS * spacing:
             continue
@@ -383,25 +475,20 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
         if not receivers:
             continue
         frame = np.asarray(frame_of(k), np.float64)
+        if not flatland:
+            points, weights, _ = quadrature(line, cells[k])
+            out.update(_across_3d(line, cells, spots[k], k, receivers, frame, points, weights, facet, binned))
+            continue
         emitters = _thinned(cells[k], MAX_EMITTERS)
-        shares = np.ones(len(emitters)) if emission is None or not flatland else \
+        shares = np.ones(len(emitters)) if emission is None else \
             np.maximum(map_coordinates(emission, [emitters[:, 1], emitters[:, 0]], order=1), 0.0)
         if not shares.sum() > 0:
             continue
         for i in receivers:
             receiving = _thinned(cells[i], MAX_RECEIVERS)
             weight = len(cells[i]) / len(receiving)
-            own = map_coordinates(frame, [receiving[:, 1], receiving[:, 0]], order=1)
-            point = float(own.sum()) * weight
+            point = float(map_coordinates(frame, [receiving[:, 1], receiving[:, 0]], order=1).sum()) * weight
             if not point > 0:
-                continue
-            if not flatland:
-                spread, seen = light_from(line, frame, spots[k], emitters, receiving, False, facet, seen=own)
-                known = seen > 0
-                if not known.any():
-                    continue
-                ratio = float(shares[known] @ spread[known]) / float(shares[known] @ seen[known])
-                out[(i, k)] = (np.clip(ratio, 1.0 / CAP, CAP) - 1.0) * point
                 continue
             # the ratio with the fold where it was found and PLACEMENT_PX either side: the one
             # nearest 1, or none where they disagree on which side of 1 it lies

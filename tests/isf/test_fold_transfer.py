@@ -32,6 +32,23 @@ def cells_across(receiving=(42, 49), emitting=(51, 62)):
     return labels
 
 
+def solid_fold(shape, fold, rows, receiving, emitting, spot_from_fold):
+    """A vertical 3D fold at x = ``fold`` in a frame of ``shape``: cell 0 the columns
+    ``receiving`` left of it, cell 1 ``emitting`` right of it (both over ``rows``), the spot
+    ``spot_from_fold`` px right of the fold mid-rows, and its frame (the 3D kernel's light on
+    the left facet). Returns labels, spot, frame and the fold's line (the frame's height)."""
+    labels = np.full(shape, -1)
+    labels[rows[0]:rows[1], receiving[0]:receiving[1]] = 0
+    labels[rows[0]:rows[1], emitting[0]:emitting[1]] = 1
+    y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    middle = (rows[0] + rows[1] - 1) / 2
+    spot = np.array([fold + spot_from_fold, middle])
+    frame = np.where(x < fold, solid(np.maximum(fold - x, 1e-9), spot_from_fold, y - middle), 0.0)
+    half = shape[0] / 2
+    line = ft.FoldLine(np.array([fold, middle]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), -half, half)
+    return labels, spot, frame, line
+
+
 @pytest.mark.parametrize("spot_x", [52.0, 55.0, 59.0])
 def test_a_flatland_cells_light_across_the_fold_is_the_kernels_double_integral(spot_x):
     """Frame of a spot at b_k across the fold: the kernel on the receiving facet. The cell's
@@ -83,15 +100,9 @@ def test_a_3d_cells_light_across_the_fold_is_the_kernels_double_integral():
     """The same with the 3D kernel (light falls off along the fold): the spot's frame scaled
     about the fold and shifted along it stands for every point of its cell (within 3%; the
     frame reaching as far as the scaling takes the cells, as a facet's does)."""
-    rows, cols, fold = 128, 201, 100.0
-    labels = np.full((rows, cols), -1)
-    labels[58:70, 90:100] = 0
-    labels[58:70, 101:111] = 1
-    y, x = np.mgrid[0:rows, 0:cols].astype(float)
-    spot = np.array([108.0, 63.5])
+    fold = 100.0
+    labels, spot, frame, line = solid_fold((128, 201), fold, (58, 70), (90, 100), (101, 111), 8.0)
     bk = spot[0] - fold
-    frame = np.where(x < fold, solid(np.maximum(fold - x, 1e-9), bk, y - spot[1]), 0.0)
-    line = ft.FoldLine(np.array([fold, 63.5]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), -64.0, 64.0)
     found = ft.cross_fold_corrections(line, ft._cell_pixels(labels, 2), np.array([[95.0, 63.5], spot]),
                                       spacing=10.0, frame_of=lambda k: frame, flatland=False, placement=0.0,
                                       min_ratio=1.0)
@@ -134,15 +145,9 @@ def test_a_large_cells_pixels_binned_give_the_kernels_double_integral(monkeypatc
     means), and the correction stays the kernel's double integral: within 3% of it, and
     within 1% of every pixel taken (the spot's 3D frame as above, on a frame as far as the
     scaling reaches)."""
-    rows, cols, fold = 480, 601, 300.0
-    labels = np.full((rows, cols), -1)
-    labels[220:260, 270:300] = 0
-    labels[220:260, 301:331] = 1
-    y, x = np.mgrid[0:rows, 0:cols].astype(float)
-    spot = np.array([308.0, 240.0])
+    fold = 300.0
+    labels, spot, frame, line = solid_fold((480, 601), fold, (220, 260), (270, 300), (301, 331), 8.0)
     bk = spot[0] - fold
-    frame = np.where(x < fold, solid(np.maximum(fold - x, 1e-9), bk, y - spot[1]), 0.0)
-    line = ft.FoldLine(np.array([fold, 240.0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), -240.0, 240.0)
     cells = ft._cell_pixels(labels, 2)
     points, weights, bins = ft.quadrature(line, cells[1])
     assert len(points) < len(cells[1]) // 4 and weights.sum() == len(cells[1])

@@ -53,8 +53,9 @@ from ilt.workspace.options import BUILD_ISF
                    "over the cell, not from its spot alone (fold_transfer.npz; 'ilt decompose' adds it to T): "
                    "facets light each other the more, the nearer the fold, and a spot a few pixels further "
                    "from the fold than its cell's pixels stands for them badly. 'all' (default): at every fold "
-                   "(the box's scans up to 28% better, the M's and textured M's up to 22%, the uneven ones up to "
-                   "40%; one box whose spots sit mid-cell at its corner 5% worse, docs/fullres.md '3D folds'); "
+                   "(the box's scans up to 32% better, the M's and textured M's up to 22%, the uneven ones up to "
+                   "40%; a box whose spots sit mid-cell, at 40 px a beam, 3.5% worse, docs/fullres.md '3D "
+                   "folds'); "
                    "'flatland': only at the folds whose light is the same along them (a flatland scene's); "
                    "'off'. It reads the frames of the beams beside the folds again (the box's 432 beams: 1.4x "
                    "the build's time; docs/fullres.md, 'Across a fold').")

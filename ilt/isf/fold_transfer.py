@@ -417,23 +417,23 @@ def _across_3d(line: FoldLine, cells: list[np.ndarray], spot: np.ndarray, k: int
             chosen.append(i)
             points.append(point)
             parts.append((receiving, np.bincount(bin_of, own, len(counts)), counts))
+    # consecutive receivers, as many as BATCH_PAIRS pixel pairs allow (at least one)
+    cumulative = np.cumsum([len(emitters) * len(part[0]) for part in parts])
     start = 0
     while start < len(chosen):
-        stop, pairs = start, 0
-        while stop < len(chosen) and (stop == start or pairs + len(emitters) * len(parts[stop][0]) <= BATCH_PAIRS):
-            pairs += len(emitters) * len(parts[stop][0])
-            stop += 1
-        sizes = [len(parts[j][0]) for j in range(start, stop)]
-        groups = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        spread, seen = light_from(line, frame, spot, emitters, np.concatenate([parts[j][0] for j in range(start, stop)]),
-                                  False, facet, seen=np.concatenate([parts[j][1] for j in range(start, stop)]),
-                                  groups=groups, counts=np.concatenate([parts[j][2] for j in range(start, stop)]))
+        done = cumulative[start - 1] if start else 0
+        stop = max(start + 1, int(np.searchsorted(cumulative, done + BATCH_PAIRS, side="right")))
+        batch = parts[start:stop]
+        groups = np.cumsum([0] + [len(part[0]) for part in batch[:-1]]).astype(np.int64)
+        spread, seen = light_from(line, frame, spot, emitters, np.concatenate([part[0] for part in batch]),
+                                  False, facet, seen=np.concatenate([part[1] for part in batch]),
+                                  groups=groups, counts=np.concatenate([part[2] for part in batch]))
         for g, j in enumerate(range(start, stop)):
             known = seen[:, g] > 0
-            if known.any():
-                ratio = float(weights[known] @ spread[known, g]) / float(weights[known] @ seen[known, g])
-                if abs(np.log(max(ratio, 1e-300))) < np.log(min_ratio):
-                    continue
+            if not known.any():
+                continue
+            ratio = float(weights[known] @ spread[known, g]) / float(weights[known] @ seen[known, g])
+            if abs(np.log(max(ratio, 1e-300))) >= np.log(min_ratio):
                 out[(chosen[j], k)] = (np.clip(ratio, 1.0 / CAP, CAP) - 1.0) * points[j]
         start = stop
     return out

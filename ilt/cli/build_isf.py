@@ -54,10 +54,10 @@ from ilt.workspace.options import BUILD_ISF
                    "facets light each other the more, the nearer the fold, and a spot a few pixels further "
                    "from the fold than its cell's pixels stands for them badly. 'all' (default): at every fold "
                    "(the box's scans up to 32% better, the M's and textured M's up to 22%, the uneven ones up to "
-                   "40%; a box whose spots sit mid-cell, at 40 px a beam, 3.5% worse, docs/fullres.md '3D "
-                   "folds'); "
+                   "40%; a box whose spots sit mid-cell 0.3-3% better where its surface is finely rendered, "
+                   "docs/fullres.md '3D folds'); "
                    "'flatland': only at the folds whose light is the same along them (a flatland scene's); "
-                   "'off'. It reads the frames of the beams beside the folds again (the box's 432 beams: 1.4x "
+                   "'off'. It reads the frames of the beams beside the folds again (the box's 432 beams: 1.5x "
                    "the build's time; docs/fullres.md, 'Across a fold').")
 @click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",
               help="An earlier build of the same scene and camera (its ISF directory, or its cells.exr): every "

@@ -300,8 +300,11 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
     ends count none (3D: light past a fold's end is not the kernel's). With ``seen`` (r,)
     weights of the receiving pixels, also returns (n,) their sums over the pixels whose mapped
     point lies within the line's ends: the point's light over the same pixels, where the
-    spread's is known (a mapped point off the facet across the fold is known: the little light
-    a point sends that far). With
+    spread's is known. At a 3D fold with ``facet``, a pair whose mapped point leaves the facet
+    or the line is read where the kernel's symmetry puts it (``K(b_q, b_p, t) = K(b_p, b_q,
+    t)``: the frame at ``b_q b_s / b_p`` from the fold, ``t b_s / b_p`` along it, times ``(b_s
+    / b_p)^2``, nearer the fold than the spot), and counts none only where that leaves them
+    too (cross_fold_corrections). With
     ``groups`` (g,) the start of each of g receiving cells in ``receiving`` (increasing),
     both are (n, g): each cell's own sums, from one pass over them all. ``counts`` (r,): how
     many pixels each receiving point stands for (:func:`quadrature`; ``seen`` then holds
@@ -327,13 +330,13 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
             # the receiver read where the kernel's symmetry puts it, K(b_q, b_p, t) = K(b_p, b_q, t),
             # when scaled off the facet or past the ends: the spot's frame b_q b_s / b_p from the fold
             lam = bs / np.maximum(np.abs(d), nearest)                         # (r,)
-            across = np.sign(d)[None, :] * lam[None, :] * bq[:, None]
-            along_sym = us + lam[None, :] * (u[None, :] - line.along(points)[:, None])
-            sym, on_sym = _sample(line, frame, facet, along_sym, across)
-            use = ~(known & on) & on_sym & (along_sym >= line.u0) & (along_sym <= line.u1)
-            values = np.where(use, sym * lam[None, :] ** gamma, values)
-            on |= use
-            known |= use
+            q, p = np.nonzero(~(known & on))
+            along_sym = us + lam[p] * (u[p] - line.along(points)[q])
+            sym, on_sym = _sample(line, frame, facet, along_sym, np.sign(d[p]) * lam[p] * bq[q])
+            use = on_sym & (along_sym >= line.u0) & (along_sym <= line.u1)
+            q, p = q[use], p[use]
+            values[q, p] = sym[use] * lam[p] ** gamma
+            on[q, p] = known[q, p] = True
         # (off the facet across the fold, past the scan's light, the little light a point sends that far: none)
         values *= known & on
     if counts is not None:

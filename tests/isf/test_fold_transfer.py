@@ -49,6 +49,21 @@ def solid_fold(shape, fold, rows, receiving, emitting, spot_from_fold):
     return labels, spot, frame, line
 
 
+def assert_double_integrals(found, labels, fold, spot, bq, rel):
+    """Cells 0 and 2 receive from cell 1 (its pixels' distances from the fold ``bq``, as
+    taken): each correction in ``found`` against the kernel's double integral over the two
+    cells' pixels, within ``rel``; returns the two ratios to the spot's light."""
+    ey = np.nonzero(labels == 1)[0]
+    ratios = []
+    for i in (0, 2):
+        ry, rx = np.nonzero(labels == i)
+        point = solid(fold - rx, spot[0] - fold, ry - spot[1]).sum()
+        spread = np.mean([solid(fold - rx, b, ry - v).sum() for b, v in zip(bq, ey)])
+        assert 1.0 + found[(i, 1)] / point == pytest.approx(spread / point, rel=rel)
+        ratios.append(spread / point)
+    return ratios
+
+
 @pytest.mark.parametrize("spot_x", [52.0, 55.0, 59.0])
 def test_a_flatland_cells_light_across_the_fold_is_the_kernels_double_integral(spot_x):
     """Frame of a spot at b_k across the fold: the kernel on the receiving facet. The cell's
@@ -123,13 +138,7 @@ def test_a_3d_cells_light_across_the_fold_is_the_kernels_double_integral():
         found = ft.cross_fold_corrections(fold_line, cells, spots, spacing=10.0, frame_of=lambda k: frame,
                                           flatland=False)
         assert set(found) == {(0, 1), (2, 1)}
-        ratios = []
-        for i in (0, 2):
-            ry, rx = np.nonzero(labels == i)
-            point = solid(fold - rx, bk, ry - spot[1]).sum()
-            spread = np.mean([solid(fold - rx, b, ry - v).sum() for b, v in zip(bq, ey)])
-            assert 1.0 + found[(i, 1)] / point == pytest.approx(spread / point, rel=0.05)
-            ratios.append(spread / point)
+        ratios = assert_double_integrals(found, labels, fold, spot, bq, rel=0.05)
         # the spot 8 px from the fold, its cell's pixels 1-11: the near cell gains, the far one loses
         assert ratios[0] > 1.1 and ratios[1] < 0.9
     lit = np.ones(frame.shape, bool)
@@ -155,16 +164,8 @@ def test_receivers_scaled_off_the_facet_are_read_by_the_kernels_symmetry():
     frame = frame * facet
     found = ft.cross_fold_corrections(line, cells, spots, spacing=10.0, frame_of=lambda k: frame, flatland=False,
                                       facet=facet, min_ratio=1.0)
-    bk = spot[0] - fold
-    ey, ex = np.nonzero(labels == 1)
-    bq = np.maximum(ex - fold, max(bk / ft.MAX_SCALE, ft.NEAR_PX))
-    expected = []
-    for i in (0, 2):
-        ry, rx = np.nonzero(labels == i)
-        point = solid(fold - rx, bk, ry - spot[1]).sum()
-        spread = np.mean([solid(fold - rx, b, ry - v).sum() for b, v in zip(bq, ey)])
-        assert 1.0 + found[(i, 1)] / point == pytest.approx(spread / point, rel=0.03)
-        expected.append(spread / point)
+    bq = np.maximum(np.nonzero(labels == 1)[1] - fold, max((spot[0] - fold) / ft.MAX_SCALE, ft.NEAR_PX))
+    expected = assert_double_integrals(found, labels, fold, spot, bq, rel=0.03)
     assert expected[0] > 1.4 and expected[1] < 0.8
 
 

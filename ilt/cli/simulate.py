@@ -32,7 +32,11 @@ from ilt.cli.options import (
 @click.option("--spot", type=click.FloatRange(0, 1, min_open=True), default=0.05, show_default=True,
               help="With --frames: laser footprint sigma, in beam spacings (0.4: spots that fill their cells).")
 @click.option("--fine", type=click.IntRange(min=1), default=16, show_default=True,
-              help="With --frames: surface patches per beam spacing (the box uses fine/4 per axis).")
+              help="With --frames: surface patches per beam spacing (the box uses fine/4 per axis: patches of "
+                   "px-per-beam / (fine/4) px, 8 px at the defaults). Each patch's light is one value, so a "
+                   "crease's light is flat over its nearest patch: the box's creases read by build-isf's fold "
+                   "transfer want patches of 5 px or less (at 80 px a beam and fine 16 the far light's valley "
+                   "splits in two; docs/fullres.md '3D folds').")
 @click.option("--px-per-beam", type=click.FloatRange(min=4), default=32.0, show_default=True,
               help="With --frames: pixels between neighbouring spots.")
 @click.option("--gloss", type=click.FloatRange(0, 1), default=0.0, show_default=True,

@@ -488,19 +488,21 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
     :data:`RECEIVER_SPACINGS` (:func:`_receivers_across`), its light spread evenly (the far
     light is a flatland scan's proxy: on the box's creases it made the 432 beams 5% worse where
     the even spread makes them 3% better), none under ``min_ratio`` (a spot mid-cell gets small
-    corrections read badly, the worse the finer the frame: the native 48-beam box 0.6 / 4.6 /
-    7.3% worse than none at 10 / 20 / 40 px a beam with every one made, 2% better / 2% better /
-    3.5% worse with the factor; the 2x lattice rendered at 40 px, spots centred, 6.5% worse ->
-    0.6% better; placement is not used), and each ratio taken over the receiving pixels
-    whose mapped points lie within the line's extent: past a fold's end (a box's corner) the
-    frame holds another face's light, and counted as none it took the corrections there 25%
-    high (the corner's cells, against the renderer's T spread evenly). A mapped point off the
-    facet across the fold (past the scan's light) counts as none, the little light a point
-    sends that far: left out of the ratio as well, it left out the emitting pixels nearest the
-    fold from every receiver past the cells touching it, which they light least (the native
-    box seen from 10x as far at 80 px a beam: ratios 1.21-1.39 where the renderer's are
-    0.93-1.09, the split 9.7% worse than without the transfer; now level, docs/fullres.md
-    "3D folds")."""
+    corrections: the native 48-beam box 0.6 / 4.6 / 7.3% worse than none at 10 / 20 / 40 px a
+    beam with every one made, 2% better / 2% better / 3.5% worse with the factor, in the
+    renderer's patches of 2.5 / 5 / 10 px; the 2x lattice rendered at 40 px, spots centred,
+    6.5% worse -> 0.6% better; placement is not used). A receiving pixel that an emitting one
+    scales off the facet or past the line's ends is read by the kernel's symmetry
+    (:func:`light_from`); where that too leaves them, each ratio is taken over the receiving
+    pixels whose mapped points lie within the line's extent: past a fold's end (a box's
+    corner) the frame holds another face's light, and counted as none it took the corrections
+    there 25% high (the corner's cells, against the renderer's T spread evenly); off the facet
+    across the fold it counts as none, the little light a point sends that far. Such pairs were
+    all left out of the ratio before the symmetric read, and with them the emitting pixels
+    nearest the fold from every receiver past the cells touching it, which they light least
+    (the native box seen from 10x as far at 80 px a beam: ratios 1.21-1.39 where the
+    renderer's are 0.93-1.09, the split 9.7% worse than without the transfer; with the read
+    1.8% better; docs/fullres.md "3D folds")."""
     side = fold_sides(line, cells, spots) if side is None else side
     spot_d, spot_u = line.distance(spots), line.along(spots)
     out, binned = {}, {}

@@ -296,8 +296,9 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
     (module docstring): ``(b_s / b_q)^gamma`` times the frame summed over the receiving
     pixels scaled about the fold by ``b_s / b_q`` (3D: and shifted along it). Points nearer
     the fold than ``b_s / MAX_SCALE`` are taken there (3D: than :data:`NEAR_PX`, or the spot). ``facet`` (H, W) bool: where the
-    receiving facet is (the scan's lit pixels); mapped pixels outside it or past the line's
-    ends count none (3D: light past a fold's end is not the kernel's). With ``seen`` (r,)
+    receiving facet is (the scan's lit pixels, bool or float32); mapped pixels outside it or
+    past the line's ends count none (3D: light past a fold's end is not the kernel's; but see
+    the symmetric read below). With ``seen`` (r,)
     weights of the receiving pixels, also returns (n,) their sums over the pixels whose mapped
     point lies within the line's ends: the point's light over the same pixels, where the
     spread's is known. At a 3D fold with ``facet``, a pair whose mapped point leaves the facet
@@ -351,12 +352,12 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
 def _sample(line: FoldLine, frame: np.ndarray, facet: np.ndarray | None, along: np.ndarray, across: np.ndarray):
     """The ``frame`` (bilinear, 0 outside) at the points ``along`` and ``across`` ``line`` (px,
     arrays of one shape), and whether each lies on ``facet`` (all True without one)."""
-    mapped = line.centre + along[..., None] * line.direction + across[..., None] * line.normal
-    where = [mapped[..., 1].ravel(), mapped[..., 0].ravel()]
+    # (rows, columns) each as one flat array, the same sums as centre + along dir + across normal
+    where = [(line.centre[c] + along * line.direction[c] + across * line.normal[c]).ravel() for c in (1, 0)]
     values = map_coordinates(frame, where, order=1, cval=0.0).reshape(across.shape)
     if facet is None:
         return values, np.ones(values.shape, bool)
-    return values, map_coordinates(facet.astype(np.float32), where, order=0, cval=0.0).reshape(across.shape) > 0
+    return values, map_coordinates(np.asarray(facet, np.float32), where, order=0, cval=0.0).reshape(across.shape) > 0
 
 
 def _receivers(line: FoldLine, cells: list[np.ndarray], side: dict[int, float], k: int, u: float,
@@ -594,6 +595,7 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
     m = len(spots)
     cells = _cell_pixels(labels, m)
     lit = labels >= 0
+    facet = lit.astype(np.float32)       # the lit mask as map_coordinates reads it, made once
     entries: dict[tuple[int, int], float] = {}
     record = []
     for line in fold_lines(barriers, spacing):
@@ -610,8 +612,8 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
         votes = [v for v in (is_flatland(line, frame(k), spots[k], lit) for k in near[:5]) if v is not None]
         flatland = bool(votes) and float(np.mean(votes)) > 0.5
         used = bool(votes) and (flatland or solid)
-        miss = homogeneity_miss(line, cells, spots, spacing, frame, flatland, side, lit) if used else None
-        found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, lit, emission=light) \
+        miss = homogeneity_miss(line, cells, spots, spacing, frame, flatland, side, facet) if used else None
+        found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, facet, emission=light) \
             if miss is not None and miss <= MAX_MISS else {}
         for key, value in found.items():      # a pair beside two folds (a corner): the longer line's
             entries.setdefault(key, value)

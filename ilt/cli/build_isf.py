@@ -57,8 +57,8 @@ from ilt.workspace.options import BUILD_ISF
                    "40%; a box whose spots sit mid-cell 0.3-3% better where its surface is finely rendered, "
                    "docs/fullres.md '3D folds'); "
                    "'flatland': only at the folds whose light is the same along them (a flatland scene's); "
-                   "'off'. It reads the frames of the beams beside the folds again (the box's 432 beams: 1.5x "
-                   "the build's time; docs/fullres.md, 'Across a fold').")
+                   "'off'. It reads the frames of the beams beside the folds again (the box's 432 beams: 1.3x "
+                   "the build's time, frames of 2.1 MP 1.7x; docs/fullres.md, 'Across a fold').")
 @click.option("--keep-covered", type=click.Path(exists=True), metavar="EARLIER_ISF",
               help="An earlier build of the same scene and camera (its ISF directory, or its cells.exr): every "
                    "pixel its cells covered stays covered, so that a denser rescan covers at least what it "

@@ -1,7 +1,7 @@
 """``ilt refine`` against uniform and random scans, on a pre-rendered beam lattice (issue 21).
 
     python benchmarks/bench_refine.py [--scenes occluded,box,m] [--electrons 2e4 | --samples 16] [--random 3]
-                                      [--lattice 2] [--added 0.5] [--oracle] [--error-map PNG]
+                                      [--lattice 2] [--added 0.5] [--oracle] [--even] [--error-map PNG]
                                       [--keep-covered] [--keep DIR] [--timing-m 4096]
 
 Each scene is rendered once with a lattice ``--lattice`` times as fine as its base scan
@@ -17,6 +17,10 @@ per face), and every scan below is a subset of the lattice's beam frames, run th
 - **random +K**: base plus K lattice beams drawn at random (``--random`` draws; the median);
 - **oracle +K** (``--oracle``): the K lattice beams in the base's cells whose *true* error is
   largest (:func:`oracle_beams`): what knowing where the base's error lies would give;
+- **even +K** (``--even``): K of the lattice beams at the centres of the base's grid cells
+  (:func:`centre_beams`: the box's quincunx; flatland, the beams halfway between base beams),
+  drawn at random: an even refinement in the scene's own grid, which needs the lattice's
+  indices (refine sees only the spots' pixels);
 - **uniform**: the lattice beams nearest a uniform scan of m ... the lattice (flatland at
   2x: six counts, the in-between ones uneven; at 4x and more: every k-th beam, even), or
   n^2 per face for n ... the lattice's (box).
@@ -225,6 +229,20 @@ def oracle_beams(case: Path, base: Path, mask: np.ndarray, spots: np.ndarray, un
     return [unused[i] for i in np.argsort(-score, kind="stable")[:k]]
 
 
+def centre_beams(scene: str, lattice_m: int, base_beams: list[int]) -> list[int]:
+    """The lattice beams at the centres of the base scan's grid cells: the box, for each face,
+    the rows and columns halfway between consecutive base rows and columns (rounded down: a
+    quincunx with the base); flatland, the beams halfway between consecutive base beams."""
+    if scene == "box":
+        big = round(np.sqrt(lattice_m / 3))
+        per_face = big * big
+        grid = sorted({(b % per_face) // big for b in base_beams})
+        middle = [(a + b) // 2 for a, b in zip(grid[:-1], grid[1:]) if b - a > 1]
+        return sorted(f * per_face + r * big + c for f in range(3) for r in middle for c in middle)
+    ordered = sorted(base_beams)
+    return [(a + b) // 2 for a, b in zip(ordered[:-1], ordered[1:]) if b - a > 1]
+
+
 def error_map(case: Path, scans: list[tuple[str, Path]], mask: np.ndarray, out: Path, photo: str = "room",
               bounce: int = 2) -> None:
     """``out``: side by side, each scan's signed error of ``photo``'s bounce over ``mask``
@@ -250,7 +268,7 @@ def error_map(case: Path, scans: list[tuple[str, Path]], mask: np.ndarray, out: 
 
 def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: int, rng, factor: int = 2,
                 added: tuple[float, ...] = (0.5,), oracle: bool = False, map_png: Path | None = None,
-                keep_covered: bool = False, samples: float = 0.0) -> None:
+                keep_covered: bool = False, samples: float = 0.0, even: bool = False) -> None:
     lattice_m, px, spot = lattice_parameters(scene, base_m, factor)
     case = root / f"{scene}-{lattice_m}"
     if not (case / "hdr").exists():
@@ -299,6 +317,12 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
             draws_err.append(errors(case, grown(f"random-{k}-{d}", base_beams + extra), mask))
         if draws_err:
             results[f"random +{k} (median of {draws})"] = (len(base_beams) + k, np.median(draws_err, axis=0))
+        if even:
+            centres = centre_beams(scene, lattice_m, base_beams)
+            pick = np.random.default_rng([zlib.crc32(scene.encode()), k, 1])
+            chosen = sorted(pick.choice(centres, size=min(k, len(centres)), replace=False).tolist())
+            results[f"even +{len(chosen)} (cell centres)"] = (len(base_beams) + len(chosen), errors(
+                case, grown(f"even-{len(chosen)}", base_beams + chosen), mask))
         if oracle:
             chosen = oracle_beams(case, base, mask, spots, unused, k)
             results[f"oracle +{k} (true errors)"] = (len(base_beams) + k, errors(
@@ -368,6 +392,8 @@ def main():
     ap.add_argument("--keep-covered", action="store_true",
                     help="build every scan past the base with 'ilt build-isf --keep-covered' the base's ISF")
     ap.add_argument("--oracle", action="store_true", help="also the beams a true-error oracle picks")
+    ap.add_argument("--even", action="store_true",
+                    help="also K of the lattice beams at the centres of the base's grid cells (an even refinement)")
     ap.add_argument("--error-map", type=Path, default=None,
                     help="PNG: the room photo's bounce-2 error of the base, refine and uniform scans (-SCENE added)")
     args = ap.parse_args()
@@ -379,7 +405,7 @@ def main():
         for scene in filter(None, args.scenes.split(",")):    # --scenes '': the timing only
             bench_scene(root, scene, base[scene], args.electrons, args.random, rng, args.lattice,
                         tuple(float(a) for a in args.added.split(",")), args.oracle, args.error_map,
-                        args.keep_covered, args.samples)
+                        args.keep_covered, args.samples, args.even)
         if args.timing_m:
             bench_timing(args.timing_m, root)
     finally:

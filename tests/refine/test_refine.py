@@ -197,3 +197,25 @@ def test_refine_does_not_write_over_its_input(workspace):
     result = run("refine", workspace / "isf", "-o", workspace / "isf", "--force")
     assert result.exit_code == 1 and "isf" in result.output
     assert sorted(p.name for p in (workspace / "isf").iterdir()) == before
+
+
+def test_bench_refine_even_reference_is_the_quincunx_of_the_base_grid():
+    """benchmarks/bench_refine.py --even: on the box's 2x lattice (12 x 12 a face) with
+    the base of 6 x 6 (rows and columns 0 2 4 7 9 11), the centres of the base's grid cells
+    are rows and columns 1 3 5 8 10 of every face (75 beams, none of the base's); flatland,
+    the beams halfway between consecutive base beams."""
+    import importlib.util
+
+    from tests import ROOT
+
+    spec = importlib.util.spec_from_file_location("bench_refine", ROOT / "benchmarks" / "bench_refine.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    uniform = bench.uniform_sets("box", 432, 2)
+    base = uniform[min(uniform)]
+    centres = bench.centre_beams("box", 432, base)
+    assert len(centres) == 75 and not set(centres) & set(base)
+    middle = {1, 3, 5, 8, 10}
+    assert all((b % 144) // 12 in middle and b % 12 in middle for b in centres)
+    assert {b // 144 for b in centres} == {0, 1, 2}
+    assert bench.centre_beams("m", 96, list(range(0, 96, 2))) == list(range(1, 95, 2))

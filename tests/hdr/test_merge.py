@@ -19,7 +19,6 @@ from ilt.sim.sensor import (
     write_bracket,
     write_dng,
 )
-from tests import ROOT
 
 SENSOR = SensorModel(width=96, height=64)
 
@@ -267,12 +266,9 @@ def test_8bit_merge_beats_opencv_debevec_and_robertson():
     calibration + merge against OpenCV's, each scaled by its least-squares log factor.
     The scene floor reads M = 0.25 in the longest frame; at M = 0.12 ours loses (the
     polynomial response is 40 % low there), which docs/hdr.md reports."""
-    import importlib.util
+    from tests import load_benchmark
 
-    spec = importlib.util.spec_from_file_location(
-        "bench_hdr", ROOT / "benchmarks" / "bench_hdr.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("bench_hdr")
     result = bench.merge_8bit_vs_opencv(np.random.default_rng(6), 60, 80, floor=1e4)
     assert result["covered"].all()
     errors = {name: r["relative_error"] for name, r in result["methods"].items()}

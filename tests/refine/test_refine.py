@@ -204,13 +204,9 @@ def test_bench_refine_even_reference_is_the_quincunx_of_the_base_grid():
     the base of 6 x 6 (rows and columns 0 2 4 7 9 11), the centres of the base's grid cells
     are rows and columns 1 3 5 8 10 of every face (75 beams, none of the base's); flatland,
     the beams halfway between consecutive base beams."""
-    import importlib.util
+    from tests import load_benchmark
 
-    from tests import ROOT
-
-    spec = importlib.util.spec_from_file_location("bench_refine", ROOT / "benchmarks" / "bench_refine.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("bench_refine")
     uniform = bench.uniform_sets("box", 432, 2)
     base = uniform[min(uniform)]
     centres = bench.centre_beams("box", 432, base)

@@ -37,6 +37,26 @@ third as wide whose cells end at the fold. On the rendered M (16 beams, exact fr
 the 3 fold edges halved: bounce error 0.177 against the 16 beams' 0.102; trisected: 0.076
 (docs/refine.md).
 
+**Noise.** Under a sensor's noise every column's residual holds the noise of the entries
+it sums: on the noisy box (2e4 e-) a median 0.41 of the column where the scene is smooth,
+as much as at its folds (0.42), so the greedy went by the noise. With build-isf's
+``T_var.npy`` (each entry's variance) the residual's expected square from the noise, ``sum_r
+(V_rj + sum_k w_k^2 V_rk)``, is taken off its square: the folds' rows 0.50, the rest 0.25.
+
+**Folds.** A 2D scan's error lies along its folds (the box's three creases hold most of it at
+every density: docs/refine.md "Folds first"): the cells next to a fold exchange light that
+changes over the fold's distance, far less than the spacing along it. Beams added on one side
+of a fold only leave the cells across it unmatched and made the box *worse* (quincunx + 16 at
+folds: 0.0573 -> 0.0642); the same beams with a partner across the fold made it better
+(0.0535). So where the build measured the light across folds (its ``fold_transfer`` lines),
+the spots within :data:`ROW_REACH` spacings of a fold on each side are its **rows**, and the
+gaps between their places along it are split at the middle by a **pair**: one beam each side,
+at the rows' distance from the fold. The pair's gain is half the share of the two rows' edges
+along the gap (a halved edge keeps a quarter each half); until the rows are
+:data:`FOLD_SPACING` of the spacing apart, pairs go before any edge, then by gain. The edges
+within the rows are not split in thirds. Flatland scans (a line of spots) have no rows: their
+folds are points, split in thirds as above.
+
 Costs: one pass over T's rows in blocks, a sparse product of O(m x edges) (about 3 m
 edges in 2D), so the decision at m = 4096 reads T once (benchmarks/bench_refine.py).
 """
@@ -58,6 +78,11 @@ MAX_EDGE_RATIO = 2.5
 #: spots whose rms distance from their principal line is below this fraction of their
 #: spacing along it are a line (a flatland plan's spots jitter across it by a pixel)
 LINE_SPREAD = 0.25
+#: a spot within this many spacings of a fold line is in the row beside it (module doc, "Folds")
+ROW_REACH = 0.75
+#: the rows beside a fold are split in pairs before anything else until their spots are this
+#: many of the scan's spacings apart along it (module doc, "Folds")
+FOLD_SPACING = 0.5
 
 
 class RefineError(ValueError):
@@ -131,11 +156,16 @@ def interpolation_weights(coords: np.ndarray, j: int, neighbours: np.ndarray) ->
     return np.linalg.lstsq(A, rhs, rcond=1e-9)[0]
 
 
-def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.ndarray]) -> np.ndarray:
+def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.ndarray],
+                        variance: np.ndarray | None = None) -> np.ndarray:
     """(m,) ``r_j`` of the module doc: how far beam j's column of T is from the affine
     interpolation of its neighbours' columns, relative to its own, over the rows that are
     not the spots of j or its neighbours. T may be a memory map: one pass over its rows
-    in blocks; the interpolation is a sparse (m, m) matrix W, and T W the residuals."""
+    in blocks; the interpolation is a sparse (m, m) matrix W, and T W the residuals.
+
+    variance: (m, m) each entry's noise variance (build-isf's ``T_var.npy``), or None: the
+    residual's expected square from the noise, ``sum_r V_rj + sum_k w_k^2 V_rk``, is taken
+    off its square (module doc, "Noise"): what is left is the transport's own change."""
     m = T.shape[0]
     weights = [interpolation_weights(coords, j, near) if near.size else np.empty(0)
                for j, near in enumerate(neighbours)]
@@ -143,12 +173,14 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
     cols = np.concatenate([np.full(1 + near.size, j) for j, near in enumerate(neighbours)])
     vals = np.concatenate([np.concatenate([[1.0], -w]) for w in weights])
     W = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(m, m))
-    residual2, norm2 = np.zeros(m), np.zeros(m)
+    residual2, norm2, noise2 = np.zeros(m), np.zeros(m), np.zeros(m)
     for r0 in range(0, m, ROW_BLOCK):
         block = np.asarray(T[r0:r0 + ROW_BLOCK], dtype=np.float64)
         R = (W.T @ block.T).T                                   # block @ W, W sparse
         residual2 += np.einsum("rj,rj->j", R, R)
         norm2 += np.einsum("rj,rj->j", block, block)
+        if variance is not None:                                # its column sums, through W^2
+            noise2 += W.multiply(W).T @ np.asarray(variance[r0:r0 + ROW_BLOCK], dtype=np.float64).sum(axis=0)
     # leave out the rows of the spots of j and its neighbours: a difference of sums, so what
     # is left below their rounding (a few eps of the sum over all rows) is zero, not
     # sqrt(eps) of a residual (1.5e-7 where the rows left out held all of it)
@@ -159,7 +191,10 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
         local = column - (np.asarray(T[np.ix_(own, near)], dtype=np.float64) @ w if near.size else 0.0)
         residual2[j] -= float(local @ local)
         norm2[j] -= float(column @ column)
-    residual2 = np.where(residual2 > floor, residual2, 0.0)
+        if variance is not None:
+            noise2[j] -= float(np.asarray(variance[own, j], dtype=np.float64).sum()
+                               + (np.asarray(variance[np.ix_(own, near)], dtype=np.float64) @ w ** 2).sum())
+    residual2 = np.where(residual2 > floor, residual2 - np.maximum(noise2, 0.0), 0.0)
     scale = np.sqrt(np.maximum(norm2, 0.0))
     return np.where(scale > 0, np.sqrt(np.maximum(residual2, 0.0)) / np.where(scale > 0, scale, 1.0), 0.0)
 
@@ -177,57 +212,161 @@ class Placement:
     residual: np.ndarray
 
 
+@dataclass(frozen=True)
+class FoldRows:
+    """The spots in the row next to a straight fold on each side of it (a 2D scan).
+
+    ``start``, ``end`` (2,) the fold's ends (pixels); ``side`` {spot row of T: +1 / -1}; ``depth``
+    (2,) the rows' median distance from the fold (+ side, - side); ``stations`` the sorted
+    positions along the fold of the two rows' spots, merged where closer than a quarter spacing."""
+
+    start: np.ndarray
+    end: np.ndarray
+    side: dict
+    depth: tuple
+    stations: list
+
+
+def fold_rows(samples: np.ndarray, folds, spacing: float) -> list[FoldRows]:
+    """The rows of spots beside each fold (``folds``: (start, end) pixel pairs, the build's
+    fold lines): spots within :data:`ROW_REACH` spacings of the line and along it, at least
+    two on each side; folds without such rows are left out."""
+    out = []
+    for start, end in folds:
+        start, end = np.asarray(start, np.float64), np.asarray(end, np.float64)
+        length = float(np.linalg.norm(end - start))
+        if length <= 0:
+            continue
+        u = (end - start) / length
+        normal = np.array([-u[1], u[0]])
+        rel = samples - start
+        t, d = rel @ u, rel @ normal
+        near = (np.abs(d) < ROW_REACH * spacing) & (t > -0.5 * spacing) & (t < length + 0.5 * spacing)
+        plus, minus = np.flatnonzero(near & (d > 0)), np.flatnonzero(near & (d < 0))
+        if plus.size < 2 or minus.size < 2:
+            continue
+        stations = []
+        for value in np.sort(t[near]):
+            if stations and value - stations[-1][-1] < spacing / 4:
+                stations[-1].append(value)
+            else:
+                stations.append([value])
+        side = {**{int(k): 1 for k in plus}, **{int(k): -1 for k in minus}}
+        out.append(FoldRows(start, end, side, (float(np.median(d[plus])), float(np.median(-d[minus]))),
+                            [float(np.mean(group)) for group in stations]))
+    return out
+
+
 def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: float | None = None,
-                covered=None) -> Placement:
+                covered=None, folds=None, variance: np.ndarray | None = None) -> Placement:
     """Up to ``count`` new beam targets (pixels) for the scan of T (m, m) with spots at
     ``samples`` (m, 2), greedy on the gain of the module doc.
 
-    Beams come in pairs (the thirds of an edge): an odd ``count`` places one fewer.
+    Beams come in pairs (the thirds of an edge, or the two sides of a fold): an odd
+    ``count`` places one fewer.
     min_spacing: no target closer than this (pixels) to a spot or another target (default:
     a quarter of the median neighbour distance, so an edge is split once);
     covered: ``covered(points (n, 2)) -> (n,) bool``, False where no beam should go (no
-    cell there); None: everywhere. Fewer than ``count`` targets come back when no edge
-    has room or gain left.
+    cell there); None: everywhere. variance: T's entries' noise (:func:`prediction_residual`).
+    folds: the scene's fold lines ((start, end) pixels,
+    the build's): along each, the rows of spots beside it are split in pairs, one beam
+    each side at the same place along it (module doc, "Folds"). Fewer than ``count``
+    targets come back when no edge has room or gain left.
     """
     if count < 2:
         raise RefineError(f"the number of new beams must be at least 2 (they come in pairs: an edge is split in "
                           f"thirds), got {count}")
     samples = np.asarray(samples, dtype=np.float64)
     edges = neighbour_edges(samples)
-    residual = prediction_residual(T, edges.coords, neighbour_lists(edges, len(samples)))
+    residual = prediction_residual(T, edges.coords, neighbour_lists(edges, len(samples)), variance)
     weight = edges.length ** edges.dimension
     score = weight * (residual[edges.pairs[:, 0]] ** 2 + residual[edges.pairs[:, 1]] ** 2) / 2
     total_weight = float(weight.sum())
     if total_weight <= 0:
         raise RefineError("the spots have no neighbours at a distance: nothing to refine")
     before = float(np.sqrt(score.sum() / total_weight))
-    spacing = float(np.median(edges.length)) / 4 if min_spacing is None else float(min_spacing)
+    median = float(np.median(edges.length))
+    spacing = median / 4 if min_spacing is None else float(min_spacing)
+    rows = fold_rows(samples, folds, median) if folds and edges.dimension == 2 else []
+    # the edges within a fold's rows (along it, and across it from row to row) are split by
+    # the fold's pairs, not in thirds
+    in_rows = np.zeros(len(edges.pairs), bool)
+    for row in rows:
+        member = np.zeros(len(samples), bool)
+        member[list(row.side)] = True
+        in_rows |= member[edges.pairs[:, 0]] & member[edges.pairs[:, 1]]
     points = list(samples)                        # the spots, then the targets as they are placed
-    # a max-heap on the gain (score / 2): (-score, tie-break, end a, end b)
-    heap = [(-float(s), n, int(a), int(b)) for n, (s, (a, b)) in enumerate(zip(score, edges.pairs)) if s > 0]
+    # a max-heap on the gain of the entry's two beams: (-gain, tie-break, kind, entry)
+    heap = [(1, -2 * float(s) / 3, n, "thirds", (int(a), int(b)))
+            for n, (s, (a, b)) in enumerate(zip(score, edges.pairs)) if s > 0 and not in_rows[n]]
+    for f, row in enumerate(rows):
+        for t0, t1 in zip(row.stations[:-1], row.stations[1:]):
+            s = _gap_score(row, t0, t1, samples, residual, median)
+            if s > 0:
+                heap.append((_fold_class(t1 - t0, median), -s / 2, len(heap), "fold", (f, t0, t1, s)))
     heapq.heapify(heap)
     tree, targets, gains = cKDTree(samples), [], []
     remaining = float(score.sum())
     tie = len(heap)
     while heap and len(targets) + 2 <= count:
-        neg, _, a, b = heapq.heappop(heap)
-        s = -neg
-        thirds = [points[a] + (points[b] - points[a]) * f for f in (1 / 3, 2 / 3)]
-        if np.linalg.norm(points[a] - points[b]) / 3 < spacing:
-            continue
-        if covered is not None and not bool(np.all(covered(np.array(thirds)))):
+        _, neg, _, kind, entry = heapq.heappop(heap)
+        gain = -neg
+        if kind == "thirds":
+            a, b = entry
+            s = 3 * gain / 2
+            new = [points[a] + (points[b] - points[a]) * f for f in (1 / 3, 2 / 3)]
+            if np.linalg.norm(points[a] - points[b]) / 3 < spacing:
+                continue
+        else:
+            f, t0, t1, s = entry
+            row = rows[f]
+            if (t1 - t0) / 2 < spacing:
+                continue
+            new = _fold_pair(row, (t0 + t1) / 2)
+        if covered is not None and not bool(np.all(covered(np.array(new)))):
             continue
         if any(tree.query(t)[0] < spacing * (1 - 1e-9) or any(np.hypot(*(t - q)) < spacing for q in targets)
-               for t in thirds):
+               for t in new):
             continue
         n = len(points)
-        points.extend(thirds)
-        targets.extend(thirds)
-        gains.extend([s / 3, s / 3])
-        remaining -= 2 * s / 3
-        for x, y in ((a, n), (n, n + 1), (n + 1, b)):
-            heapq.heappush(heap, (-s / 9, tie, x, y))
-            tie += 1
+        points.extend(new)
+        targets.extend(new)
+        gains.extend([gain / 2, gain / 2])
+        remaining -= gain
+        if kind == "thirds":
+            for x, y in ((a, n), (n, n + 1), (n + 1, b)):
+                heapq.heappush(heap, (1, -2 * s / 27, tie, "thirds", (x, y)))
+                tie += 1
+        else:
+            middle = (t0 + t1) / 2
+            for u0, u1 in ((t0, middle), (middle, t1)):
+                heapq.heappush(heap, (_fold_class(u1 - u0, median), -s / 8, tie, "fold", (f, u0, u1, s / 4)))
+                tie += 1
     after = float(np.sqrt(max(remaining, 0.0) / total_weight))
     return Placement(targets=np.array(targets).reshape(-1, 2), gain=np.array(gains) / total_weight,
                      before=before, after=after, residual=residual)
+
+
+def _fold_class(gap: float, spacing: float) -> int:
+    """0 (before every edge) for a gap along a fold wider than :data:`FOLD_SPACING` of the
+    scan's spacing, else 1 (ranked with the edges by its gain)."""
+    return 0 if gap > FOLD_SPACING * spacing * (1 + 1e-9) else 1
+
+
+def _gap_score(row: FoldRows, t0: float, t1: float, samples, residual, spacing: float) -> float:
+    """The share of a gap between two stations along a fold: the edges along it on the two
+    sides (length^2), each with the mean squared residual of the rows' spots at its ends."""
+    u = (row.end - row.start) / np.linalg.norm(row.end - row.start)
+    along = (samples - row.start) @ u
+    ends = [k for k in row.side if min(abs(along[k] - t0), abs(along[k] - t1)) < spacing / 4]
+    if not ends:
+        return 0.0
+    return 2 * (t1 - t0) ** 2 * float(np.mean(residual[ends] ** 2))
+
+
+def _fold_pair(row: FoldRows, t: float) -> list[np.ndarray]:
+    """The two targets at ``t`` along the fold, one each side at its row's distance."""
+    u = (row.end - row.start) / np.linalg.norm(row.end - row.start)
+    normal = np.array([-u[1], u[0]])
+    foot = row.start + t * u
+    return [foot + row.depth[0] * normal, foot - row.depth[1] * normal]

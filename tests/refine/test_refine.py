@@ -17,7 +17,7 @@ from ilt.refine import (
     place_beams,
     prediction_residual,
 )
-from ilt.refine.indicator import neighbour_lists
+from ilt.refine.indicator import fold_rows, neighbour_lists
 
 
 def _line_T(m: int, jump: int) -> np.ndarray:
@@ -89,6 +89,83 @@ def test_the_first_pair_trisects_the_fold_then_its_neighbours_edges():
     share = np.array([lengths[3] * r2, lengths[2] * r2 / 2, lengths[4] * r2 / 2]) / lengths.sum()
     assert sorted(placement.gain) == pytest.approx(sorted(np.repeat(share / 3, 2)), rel=1e-9)
     assert placement.before ** 2 - placement.after ** 2 == pytest.approx(placement.gain.sum(), rel=1e-9)
+
+
+def test_the_noise_is_taken_off_the_residual_and_nothing_else():
+    # a grid whose columns vary linearly with the spot: residual 0; plus each entry's own noise
+    yy, xx = np.mgrid[0:8, 0:8]
+    samples = np.column_stack([xx.ravel() * 10.0, yy.ravel() * 10.0])
+    m = len(samples)
+    edges = neighbour_edges(samples)
+    near = neighbour_lists(edges, m)
+    a, b, c = np.random.default_rng(2).uniform(1, 2, (3, m, 1))
+    smooth = a + b * samples[:, 0][None, :] / 70 + c * samples[:, 1][None, :] / 70
+    sigma = 0.02 * smooth
+    noisy = smooth + sigma * np.random.default_rng(3).standard_normal(smooth.shape)
+    raw = prediction_residual(noisy, edges.coords, near)
+    debiased = prediction_residual(noisy, edges.coords, near, variance=sigma ** 2)
+    # the noise's expected square is taken off: what is left is a few % of the raw residual
+    assert np.median(raw) > 0.01
+    assert np.median(debiased) < 0.3 * np.median(raw)
+    # without noise a zero variance changes nothing (the fold's residual of the line test)
+    line = neighbour_edges(_line_samples(8, jitter=0.0))
+    T = _line_T(8, jump=3)
+    assert prediction_residual(T, line.coords, neighbour_lists(line, 8), variance=np.zeros((8, 8))) == \
+        pytest.approx(prediction_residual(T, line.coords, neighbour_lists(line, 8)), abs=1e-15)
+
+
+def _fold_grid():
+    """Spots on a 10 px grid of 6 columns x 8 rows, a vertical fold at x = 25 between columns
+    2 and 3 (spots 5 px from it on each side), and T smooth in the spots (a fold T's rows know
+    nothing of: the fold comes from the build's lines)."""
+    yy, xx = np.mgrid[0:8, 0:6]
+    samples = np.column_stack([xx.ravel() * 10.0, yy.ravel() * 10.0])
+    T = 1.0 + 0.5 * np.random.default_rng(4).random((len(samples), len(samples)))
+    return samples, T, [(np.array([25.0, 0.0]), np.array([25.0, 70.0]))]
+
+
+def test_the_rows_beside_a_fold_are_the_spots_next_to_it_on_each_side():
+    samples, _, folds = _fold_grid()
+    rows = fold_rows(samples, folds, 10.0)
+    assert len(rows) == 1
+    assert sorted(k for k, side in rows[0].side.items() if side > 0) == [6 * r + 2 for r in range(8)]
+    assert sorted(k for k, side in rows[0].side.items() if side < 0) == [6 * r + 3 for r in range(8)]
+    assert rows[0].depth == pytest.approx((5.0, 5.0))
+    assert rows[0].stations == pytest.approx([0, 10, 20, 30, 40, 50, 60, 70])
+    assert fold_rows(samples[samples[:, 0] < 25], folds, 10.0) == []         # one side only: no rows
+
+
+def test_a_fold_is_split_in_pairs_across_it_before_any_edge():
+    samples, T, folds = _fold_grid()
+    placement = place_beams(T, samples, 14, folds=folds)
+    # 7 gaps along the fold, each split at its middle with one beam 5 px each side of it
+    pairs = placement.targets.reshape(-1, 2, 2)
+    assert len(pairs) == 7
+    assert np.allclose(pairs[:, 0, 0], 20.0) and np.allclose(pairs[:, 1, 0], 30.0)
+    assert np.allclose(pairs[:, 0, 1], pairs[:, 1, 1])
+    assert sorted(pairs[:, 0, 1]) == pytest.approx([5, 15, 25, 35, 45, 55, 65])
+    # then the edges: no pair at a quarter gap (the rows are half the scan's spacing apart)
+    more = place_beams(T, samples, 18, folds=folds).targets[14:]
+    assert not np.any(np.isclose(more[:, 0], 20.0) | np.isclose(more[:, 0], 30.0))
+    # without the fold's line, the same T places thirds of edges
+    assert not np.allclose(place_beams(T, samples, 14).targets, placement.targets)
+
+
+def test_refine_reads_the_folds_the_build_measured_from_its_manifest(tmp_path):
+    from types import SimpleNamespace
+
+    from ilt.io.frames import PixelMapping
+    from ilt.refine.stage import _folds
+
+    lines = [{"from": [10.0, 2.0], "to": [10.0, 40.0], "entries": 12},
+             {"from": [1.0, 1.0], "to": [5.0, 5.0], "entries": 0}]          # no light measured: not a fold
+    (tmp_path / "manifest.json").write_text(json.dumps({"stage": "build-isf", "fold_transfer": {"lines": lines}}))
+    isf = SimpleNamespace(mapping=PixelMapping(origin=(0.5, 0.5), scale=2.0))     # a half-resolution grid
+    folds = _folds(tmp_path, isf)
+    assert len(folds) == 1
+    assert np.allclose(folds[0], [[20.5, 4.5], [20.5, 80.5]])
+    (tmp_path / "manifest.json").write_text(json.dumps({"stage": "build-isf"}))    # built without the transfer
+    assert _folds(tmp_path, isf) == []
 
 
 def test_no_beam_lands_outside_the_cells_nor_closer_than_min_spacing():

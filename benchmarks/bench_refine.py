@@ -353,7 +353,9 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
 
 
 def bench_timing(m: int, root: Path) -> None:
-    """Refine's decision against reading T from disk (build-isf's floor) at m beams."""
+    """Refine's decision against reading T from disk (build-isf's floor) at m beams: with T
+    alone, and as the command decides on a build with a noise model and a fold (T_var.npy
+    read too, a fold line down the middle of the grid)."""
     from ilt.refine.indicator import place_beams
 
     side = int(np.ceil(np.sqrt(m)))
@@ -361,10 +363,12 @@ def bench_timing(m: int, root: Path) -> None:
     samples = np.column_stack([xx * 8.0, yy * 8.0]) + np.random.default_rng(1).uniform(-0.5, 0.5, (m, 2))
     T = np.abs(np.random.default_rng(2).standard_normal((m, m)))
     T /= np.linalg.norm(T, axis=0)
-    path = root / "T-timing.npy"
+    path, var_path = root / "T-timing.npy", root / "T_var-timing.npy"
     np.save(path, T)
+    np.save(var_path, np.square(0.01 * T))
     del T
-    read, decide = [], []
+    fold = [(np.array([(side // 2 - 0.5) * 8.0, -4.0]), np.array([(side // 2 - 0.5) * 8.0, side * 8.0]))]
+    read, decide, full = [], [], []
     for _ in range(3):
         t0 = time.perf_counter()
         T = np.load(path)
@@ -374,8 +378,11 @@ def bench_timing(m: int, root: Path) -> None:
         t0 = time.perf_counter()
         place_beams(Tm, samples, m // 8)
         decide.append(time.perf_counter() - t0)
-    print(f"\nm = {m}: refine's decision {np.median(decide):.2f} s (median of 3), reading T.npy "
-          f"{np.median(read):.2f} s")
+        t0 = time.perf_counter()
+        place_beams(Tm, samples, m // 8, variance=np.load(var_path, mmap_mode="r"), folds=fold)
+        full.append(time.perf_counter() - t0)
+    print(f"\nm = {m}: refine's decision {np.median(decide):.2f} s, with T_var and a fold {np.median(full):.2f} s "
+          f"(medians of 3), reading T.npy {np.median(read):.2f} s")
 
 
 def main():

@@ -203,13 +203,15 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
 class Placement:
     """The chosen beams, best first: ``targets`` (K, 2) pixels (x, y), ``gain`` (K,) what
     each removes from E^2; ``before`` / ``after`` the indicator E of the scan and of the
-    scan with the targets added; ``residual`` (m,) each beam's ``r_j``, for reports."""
+    scan with the targets added; ``residual`` (m,) each beam's ``r_j``, for reports;
+    ``fold_pairs`` how many of the targets' pairs straddle a fold."""
 
     targets: np.ndarray
     gain: np.ndarray
     before: float
     after: float
     residual: np.ndarray
+    fold_pairs: int = 0
 
 
 @dataclass(frozen=True)
@@ -307,7 +309,7 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
     heapq.heapify(heap)
     tree, targets, gains = cKDTree(samples), [], []
     remaining = float(score.sum())
-    tie = len(heap)
+    tie, pairs = len(heap), 0
     while heap and len(targets) + 2 <= count:
         _, neg, _, kind, entry = heapq.heappop(heap)
         gain = -neg
@@ -338,13 +340,14 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
                 heapq.heappush(heap, (1, -2 * s / 27, tie, "thirds", (x, y)))
                 tie += 1
         else:
+            pairs += 1
             middle = (t0 + t1) / 2
             for u0, u1 in ((t0, middle), (middle, t1)):
                 heapq.heappush(heap, (_fold_class(u1 - u0, median), -s / 8, tie, "fold", (f, u0, u1, s / 4)))
                 tie += 1
     after = float(np.sqrt(max(remaining, 0.0) / total_weight))
     return Placement(targets=np.array(targets).reshape(-1, 2), gain=np.array(gains) / total_weight,
-                     before=before, after=after, residual=residual)
+                     before=before, after=after, residual=residual, fold_pairs=pairs)
 
 
 def _fold_class(gap: float, spacing: float) -> int:

@@ -73,7 +73,8 @@ def refine(isf_dir: str | os.PathLike, out: str | os.PathLike, beams: int, captu
     if len(placement.targets) < beams:
         log.info("%d of the %d beams asked for have room and gain (they come in pairs; no edge left wider than 3 x "
                  "--min-spacing inside the cells)", len(placement.targets), beams)
-    summary = {"m": isf.m, "asked": beams, "beams": len(placement.targets),
+    summary = {"m": isf.m, "asked": beams, "beams": len(placement.targets), "fold_pairs": placement.fold_pairs,
+               "folds": len(folds), "noise": variance is not None,
                "indicator": {"before": placement.before, "after": placement.after},
                "units": plan[0] if plan is not None else None}
     with staged_directory(out, force=force) as tmp:

@@ -140,7 +140,7 @@ def test_a_fold_is_split_in_pairs_across_it_before_any_edge():
     placement = place_beams(T, samples, 14, folds=folds)
     # 7 gaps along the fold, each split at its middle with one beam 5 px each side of it
     pairs = placement.targets.reshape(-1, 2, 2)
-    assert len(pairs) == 7
+    assert len(pairs) == 7 and placement.fold_pairs == 7
     assert np.allclose(pairs[:, 0, 0], 20.0) and np.allclose(pairs[:, 1, 0], 30.0)
     assert np.allclose(pairs[:, 0, 1], pairs[:, 1, 1])
     assert sorted(pairs[:, 0, 1]) == pytest.approx([5, 15, 25, 35, 45, 55, 65])

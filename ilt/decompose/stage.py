@@ -41,7 +41,7 @@ from ilt.isf.directory import ISF
 from ilt.isf.fine import FINE_DIR, FineError, FineOperator, load_fine
 from ilt.isf.lambertian import LAMBERTIAN_FILE, read_lambertian
 from ilt.isf.layout import sample_frame, splat, vector_to_image
-from ilt.isf.noise import NOISE_FILE, T_VAR_FILE, read_noise
+from ilt.isf.noise import NOISE_FILE, read_entry_variance, read_noise
 from ilt.isf.fold_transfer import FILE as FOLD_FILE, apply_corrections
 from ilt.isf.spill import SPILL_FILE, Unmixing
 from ilt.transport.compressed import grid_points
@@ -546,7 +546,7 @@ def decompose(
         folded = _fold_corrections(isf, fold_transfer)
         if folded is not None:
             T_op = _folded_T(T_op, folded, spilled is not None, cache_dir, stack)
-        variance = _entry_variance(isf) if noise_source != "given" else None
+        variance = read_entry_variance(Path(isf.path).parent, isf.m) if noise_source != "given" else None
         T_op, diagonal = _debiased_diagonal(T_op, variance, spilled is not None or folded is not None, cache_dir,
                                             stack)
         try:
@@ -894,16 +894,6 @@ def _debiased_diagonal(T, variance, owned: bool, cache_dir, stack: contextlib.Ex
     elif isinstance(T, np.memmap):
         out = _scratch_map(T.shape, "ilt-debiased-", cache_dir, stack)
     return raise_diagonal(T, raise_by, out), record
-
-
-def _entry_variance(isf) -> np.ndarray | None:
-    """(m, m) the variance of each unit-column entry of T as build-isf measured it from the
-    frames (``T_var.npy``, memory-mapped), or None."""
-    path = Path(isf.path).parent / T_VAR_FILE
-    if not path.exists():
-        return None
-    variance = np.load(path, mmap_mode="r")
-    return variance if variance.shape == (isf.m, isf.m) else None
 
 
 def _cell_areas(cells: np.ndarray, m: int) -> np.ndarray | None:

@@ -368,5 +368,15 @@ def read_noise(directory: str | Path) -> dict | None:
     return data
 
 
+def read_entry_variance(directory, m: int) -> np.ndarray | None:
+    """(m, m) the variance of each unit-column entry of T as build-isf measured it from the
+    frames (``directory / T_var.npy``, memory-mapped), or None: no file, or another T's shape."""
+    path = Path(directory) / T_VAR_FILE
+    if not path.is_file():
+        return None
+    variance = np.load(path, mmap_mode="r")
+    return variance if variance.shape == (m, m) else None
+
 __all__ = ["NOISE_FILE", "T_VAR_FILE", "EntryNoise", "FrameNoise", "cap_spot_cells", "cell_variance", "diagonal_scatter",
+           "read_entry_variance",
            "fit_frame_noise", "frame_residuals", "read_noise", "write_noise"]

@@ -30,7 +30,7 @@ from ilt.io.manifest import (
 )
 from ilt.io.staged import staged_directory
 from ilt.isf.directory import CELLS_FILE, SAMPLES_FILE, T_FILE, ISFError, load_isf
-from ilt.isf.noise import T_VAR_FILE
+from ilt.isf.noise import read_entry_variance
 
 from .indicator import Placement, RefineError, place_beams
 from .pointing import aim, check_reach
@@ -62,7 +62,7 @@ def refine(isf_dir: str | os.PathLike, out: str | os.PathLike, beams: int, captu
     plan = _plan_angles(Path(capture), isf) if capture is not None else None
     covered = _covered(isf)
     folds = _folds(isf_dir, isf)
-    variance = _entry_variance(isf_dir, isf.m)
+    variance = read_entry_variance(isf_dir, isf.m)
     placement = place_beams(isf.T, isf.samples, beams, min_spacing=min_spacing, covered=covered, folds=folds,
                             variance=variance)
     angles = None
@@ -116,15 +116,6 @@ def _plan_angles(capture: Path, isf) -> tuple[str, np.ndarray, dict | None]:
         raise RefineError(f"{capture / MANIFEST}: its plan has {len(targets)} beams; the ISF uses beam "
                           f"{int(rows.max())}: not the capture this ISF was built from")
     return str(plan.get("units", "degrees")), targets[rows], manifest.get("ptu")
-
-
-def _entry_variance(isf_dir: Path, m: int) -> np.ndarray | None:
-    """(m, m) T's entries' noise variance (build-isf's ``T_var.npy``, memory-mapped), or None."""
-    path = isf_dir / T_VAR_FILE
-    if not path.is_file():
-        return None
-    variance = np.load(path, mmap_mode="r")
-    return variance if variance.shape == (m, m) else None
 
 
 def _folds(isf_dir: Path, isf) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -38,8 +38,8 @@ the 3 fold edges halved: bounce error 0.177 against the 16 beams' 0.102; trisect
 (docs/refine.md).
 
 **Noise.** Under a sensor's noise every column's residual holds the noise of the entries
-it sums: on the noisy box (2e4 e-) a median 0.41 of the column where the scene is smooth,
-as much as at its folds (0.42), so the greedy went by the noise. With build-isf's
+it sums: on the noisy box (2e4 e-) a median 0.41 of the column away from its folds, 0.53 in
+the folds' rows, so the greedy went mostly by the noise. With build-isf's
 ``T_var.npy`` (each entry's variance) the residual's expected square from the noise, ``sum_r
 (V_rj + sum_k w_k^2 V_rk)``, is taken off its square: the folds' rows 0.50, the rest 0.25.
 
@@ -64,6 +64,7 @@ edges in 2D), so the decision at m = 4096 reads T once (benchmarks/bench_refine.
 from __future__ import annotations
 
 import heapq
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -173,14 +174,15 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
     cols = np.concatenate([np.full(1 + near.size, j) for j, near in enumerate(neighbours)])
     vals = np.concatenate([np.concatenate([[1.0], -w]) for w in weights])
     W = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(m, m))
-    residual2, norm2, noise2 = np.zeros(m), np.zeros(m), np.zeros(m)
+    residual2, norm2, variance_sums = np.zeros(m), np.zeros(m), np.zeros(m)
     for r0 in range(0, m, ROW_BLOCK):
         block = np.asarray(T[r0:r0 + ROW_BLOCK], dtype=np.float64)
         R = (W.T @ block.T).T                                   # block @ W, W sparse
         residual2 += np.einsum("rj,rj->j", R, R)
         norm2 += np.einsum("rj,rj->j", block, block)
-        if variance is not None:                                # its column sums, through W^2
-            noise2 += W.multiply(W).T @ np.asarray(variance[r0:r0 + ROW_BLOCK], dtype=np.float64).sum(axis=0)
+        if variance is not None:
+            variance_sums += np.asarray(variance[r0:r0 + ROW_BLOCK], dtype=np.float64).sum(axis=0)
+    noise2 = W.multiply(W).T @ variance_sums if variance is not None else np.zeros(m)   # all rows, through W^2
     # leave out the rows of the spots of j and its neighbours: a difference of sums, so what
     # is left below their rounding (a few eps of the sum over all rows) is zero, not
     # sqrt(eps) of a residual (1.5e-7 where the rows left out held all of it)
@@ -218,15 +220,24 @@ class Placement:
 class FoldRows:
     """The spots in the row next to a straight fold on each side of it (a 2D scan).
 
-    ``start``, ``end`` (2,) the fold's ends (pixels); ``side`` {spot row of T: +1 / -1}; ``depth``
-    (2,) the rows' median distance from the fold (+ side, - side); ``stations`` the sorted
-    positions along the fold of the two rows' spots, merged where closer than a quarter spacing."""
+    ``start`` (2,) one end of the fold (pixels), ``along`` and ``normal`` its unit vectors;
+    ``side`` {spot row of T: +1 / -1}; ``place`` {spot row: its position along the fold};
+    ``depth`` (2,) the rows' median distance from the fold (+ side, - side); ``stations`` the
+    sorted positions along the fold of the two rows' spots, merged where closer than a
+    quarter spacing."""
 
     start: np.ndarray
-    end: np.ndarray
+    along: np.ndarray
+    normal: np.ndarray
     side: dict
+    place: dict
     depth: tuple
     stations: list
+
+    def pair(self, t: float) -> list[np.ndarray]:
+        """The two targets at ``t`` along the fold, one each side at its row's distance."""
+        foot = self.start + t * self.along
+        return [foot + self.depth[0] * self.normal, foot - self.depth[1] * self.normal]
 
 
 def fold_rows(samples: np.ndarray, folds, spacing: float) -> list[FoldRows]:
@@ -254,7 +265,8 @@ def fold_rows(samples: np.ndarray, folds, spacing: float) -> list[FoldRows]:
             else:
                 stations.append([value])
         side = {**{int(k): 1 for k in plus}, **{int(k): -1 for k in minus}}
-        out.append(FoldRows(start, end, side, (float(np.median(d[plus])), float(np.median(-d[minus]))),
+        out.append(FoldRows(start, u, normal, side, {k: float(t[k]) for k in side},
+                            (float(np.median(d[plus])), float(np.median(-d[minus]))),
                             [float(np.mean(group)) for group in stations]))
     return out
 
@@ -298,18 +310,19 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
         member[list(row.side)] = True
         in_rows |= member[edges.pairs[:, 0]] & member[edges.pairs[:, 1]]
     points = list(samples)                        # the spots, then the targets as they are placed
-    # a max-heap on the gain of the entry's two beams: (-gain, tie-break, kind, entry)
-    heap = [(1, -2 * float(s) / 3, n, "thirds", (int(a), int(b)))
+    # a heap on (class: fold gaps first, -gain of the entry's two beams, tie-break, kind, entry)
+    tie = itertools.count()                       # unique: the entries themselves are never compared
+    heap = [(1, -2 * float(s) / 3, next(tie), "thirds", (int(a), int(b)))
             for n, (s, (a, b)) in enumerate(zip(score, edges.pairs)) if s > 0 and not in_rows[n]]
     for f, row in enumerate(rows):
         for t0, t1 in zip(row.stations[:-1], row.stations[1:]):
-            s = _gap_score(row, t0, t1, samples, residual, median)
+            s = _gap_score(row, t0, t1, residual, median)
             if s > 0:
-                heap.append((_fold_class(t1 - t0, median), -s / 2, len(heap), "fold", (f, t0, t1, s)))
+                heap.append((_fold_class(t1 - t0, median), -s / 2, next(tie), "fold", (f, t0, t1, s)))
     heapq.heapify(heap)
     tree, targets, gains = cKDTree(samples), [], []
     remaining = float(score.sum())
-    tie, pairs = len(heap), 0
+    pairs = 0
     while heap and len(targets) + 2 <= count:
         _, neg, _, kind, entry = heapq.heappop(heap)
         gain = -neg
@@ -324,7 +337,7 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
             row = rows[f]
             if (t1 - t0) / 2 < spacing:
                 continue
-            new = _fold_pair(row, (t0 + t1) / 2)
+            new = row.pair((t0 + t1) / 2)
         if covered is not None and not bool(np.all(covered(np.array(new)))):
             continue
         if any(tree.query(t)[0] < spacing * (1 - 1e-9) or any(np.hypot(*(t - q)) < spacing for q in targets)
@@ -337,14 +350,12 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
         remaining -= gain
         if kind == "thirds":
             for x, y in ((a, n), (n, n + 1), (n + 1, b)):
-                heapq.heappush(heap, (1, -2 * s / 27, tie, "thirds", (x, y)))
-                tie += 1
+                heapq.heappush(heap, (1, -2 * s / 27, next(tie), "thirds", (x, y)))
         else:
             pairs += 1
             middle = (t0 + t1) / 2
             for u0, u1 in ((t0, middle), (middle, t1)):
-                heapq.heappush(heap, (_fold_class(u1 - u0, median), -s / 8, tie, "fold", (f, u0, u1, s / 4)))
-                tie += 1
+                heapq.heappush(heap, (_fold_class(u1 - u0, median), -s / 8, next(tie), "fold", (f, u0, u1, s / 4)))
     after = float(np.sqrt(max(remaining, 0.0) / total_weight))
     return Placement(targets=np.array(targets).reshape(-1, 2), gain=np.array(gains) / total_weight,
                      before=before, after=after, residual=residual, fold_pairs=pairs)
@@ -356,20 +367,10 @@ def _fold_class(gap: float, spacing: float) -> int:
     return 0 if gap > FOLD_SPACING * spacing * (1 + 1e-9) else 1
 
 
-def _gap_score(row: FoldRows, t0: float, t1: float, samples, residual, spacing: float) -> float:
+def _gap_score(row: FoldRows, t0: float, t1: float, residual, spacing: float) -> float:
     """The share of a gap between two stations along a fold: the edges along it on the two
     sides (length^2), each with the mean squared residual of the rows' spots at its ends."""
-    u = (row.end - row.start) / np.linalg.norm(row.end - row.start)
-    along = (samples - row.start) @ u
-    ends = [k for k in row.side if min(abs(along[k] - t0), abs(along[k] - t1)) < spacing / 4]
+    ends = [k for k, t in row.place.items() if min(abs(t - t0), abs(t - t1)) < spacing / 4]
     if not ends:
         return 0.0
     return 2 * (t1 - t0) ** 2 * float(np.mean(residual[ends] ** 2))
-
-
-def _fold_pair(row: FoldRows, t: float) -> list[np.ndarray]:
-    """The two targets at ``t`` along the fold, one each side at its row's distance."""
-    u = (row.end - row.start) / np.linalg.norm(row.end - row.start)
-    normal = np.array([-u[1], u[0]])
-    foot = row.start + t * u
-    return [foot + row.depth[0] * normal, foot - row.depth[1] * normal]

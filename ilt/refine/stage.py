@@ -30,7 +30,7 @@ from ilt.io.manifest import (
 )
 from ilt.io.staged import staged_directory
 from ilt.isf.directory import CELLS_FILE, SAMPLES_FILE, T_FILE, ISFError, load_isf
-from ilt.isf.noise import read_entry_variance
+from ilt.isf.noise import T_VAR_FILE, read_entry_variance
 
 from .indicator import Placement, RefineError, place_beams
 from .pointing import aim, check_reach
@@ -84,7 +84,10 @@ def refine(isf_dir: str | os.PathLike, out: str | os.PathLike, beams: int, captu
         _write_png(tmp / PNG_FILE, isf, placement)
         if (isf_dir / CELLS_FILE).is_file():
             shutil.copyfile(isf_dir / CELLS_FILE, tmp / CELLS_FILE)
-        inputs = _input_hashes(isf_dir, (T_FILE, SAMPLES_FILE))
+        # what the decision read: T, the spots, and T_var.npy and the build's manifest (its folds) when used
+        inputs = _input_hashes(isf_dir, (T_FILE, SAMPLES_FILE, *((T_VAR_FILE,) if variance is not None else ())))
+        if folds:
+            inputs[str(isf_dir / MANIFEST)] = fingerprint_file(isf_dir / MANIFEST)
         if capture is not None:
             inputs[str(Path(capture) / MANIFEST)] = fingerprint_file(Path(capture) / MANIFEST)
         write_manifest(tmp, "refine", {"beams": beams, "min_spacing": min_spacing}, inputs=inputs,

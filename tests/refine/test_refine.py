@@ -226,7 +226,12 @@ def test_refine_of_a_capture_gives_pixels_and_angles_between_its_beams(workspace
     summary = json.loads((out / "refine.json").read_text())
     assert summary["beams"] == 4 and summary["indicator"]["after"] < summary["indicator"]["before"]
     assert (out / "refine.png").stat().st_size > 0
-    assert json.loads((out / "manifest.json").read_text())["stage"] == "refine"
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["stage"] == "refine"
+    # the decision's inputs as it read them: T_var.npy exactly when there (noise taken off)
+    has_var = (workspace / "isf" / "T_var.npy").is_file()
+    assert summary["noise"] is has_var
+    assert any(k.endswith("T_var.npy") for k in manifest["inputs"]) is has_var
 
 
 def test_refine_of_bare_frames_gives_pixels_only(workspace, tmp_path):

@@ -297,3 +297,29 @@ def test_bench_refine_even_reference_is_the_quincunx_of_the_base_grid():
     assert all((b % 144) // 12 in middle and b % 12 in middle for b in centres)
     assert {b // 144 for b in centres} == {0, 1, 2}
     assert bench.centre_beams("m", 96, list(range(0, 96, 2))) == list(range(1, 95, 2))
+
+
+def test_bench_refine_fold_reference_is_the_middles_along_the_faces_that_meet(tmp_path):
+    """benchmarks/bench_refine.py's folds + centres: two faces side by side (face 0's last
+    column 10 px from face 1's first, the lattice's spacing) and one far away; the fold beams
+    are the base's middle rows on those two columns only. A noise draw's case shares the
+    rendered frames (hard links) and is made once."""
+    from tests import load_benchmark
+
+    bench = load_benchmark("bench_refine")
+    yy, xx = np.mgrid[0:12, 0:12] * 10.0
+    face = np.column_stack([xx.ravel(), yy.ravel()])
+    spots = np.vstack([face, face + [120.0, 0.0], face + [0.0, 1000.0]])
+    base = bench.uniform_sets("box", 432, 2)[108]
+    middle = [1, 3, 5, 8, 10]
+    assert bench.fold_beams("box", spots, base) == sorted([r * 12 + 11 for r in middle] + [144 + r * 12 for r in middle])
+    assert bench.fold_beams("m", spots[:96], list(range(0, 96, 2))) == []
+    case = tmp_path / "box-432"
+    for name in ("hdr", "photos", "truth"):
+        (case / name).mkdir(parents=True)
+        (case / name / "a.exr").write_bytes(b"x")
+    (case / "manifest.json").write_text("{}")
+    assert bench.noise_case(case, 0) == case
+    other = bench.noise_case(case, 2)
+    assert other == tmp_path / "box-432-noise2" and bench.noise_case(case, 2) == other
+    assert (other / "hdr" / "a.exr").stat().st_ino == (case / "hdr" / "a.exr").stat().st_ino

@@ -20,8 +20,8 @@ from ilt.cli.options import (
 @click.argument("isf_dir", required=False, type=click.Path(exists=True, file_okay=False))
 @stage_output_option
 @click.option("--beams", "beams", type=int, default=32, show_default=True,
-              help="At most this many new beams, best first; they come in pairs (an edge between two "
-                   "spots split in thirds), so an odd number places one fewer.")
+              help="At most this many new beams, best first. On a line of spots (a flatland scan) they "
+                   "come in pairs (an edge split in thirds), so an odd number places one fewer.")
 @click.option("--capture", "capture", type=click.Path(exists=True, file_okay=False), default=None,
               help="The capture directory the ISF was built from, for pan/tilt and the unit's reach "
                    "(default: the workspace's capture/ when it has a manifest; none: pixels only).")
@@ -35,10 +35,12 @@ def command(isf_dir, output, beams, capture, min_spacing, workspace, force, as_j
     """Decide where the next beams should land for the scan of ISF_DIR (default
     WORKSPACE/isf), and write -o (default WORKSPACE/refine).
 
-    Neighbouring beams whose columns of T differ most (folds, occluding edges, texture)
-    get two new beams between them, at the thirds (never on a fold halfway between
-    them), greedily by the expected gain; none lands
-    outside the ISF's cells. Writes refine.csv (x,y in full-resolution sensor pixels,
+    Where the build measured folds, their rows of spots are split first, one new beam on
+    each side. Then, on a grid of spots, the neighbouring beams whose columns of T differ
+    most (what they light; the noise taken off) get a new beam halfway; on a line, the
+    beams whose column their neighbours predict worst get two, at the thirds (never on a
+    fold halfway between them). Greedy by the expected gain; none lands outside the ISF's
+    cells. Writes refine.csv (x,y in full-resolution sensor pixels,
     pan,tilt in the plan's units when the capture is known, gain; best first),
     refine.json (the indicator before and after), refine.png and manifest.json.
     Works on an ISF built from bare beam frames (pixels only). docs/refine.md.

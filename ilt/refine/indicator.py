@@ -13,14 +13,13 @@ Delaunay triangulation, or consecutive spots of a line); across a fold it is not
 over T's unit columns, with the rows of the spots of j and its neighbours k left out, and
 ``w`` the least-norm weights that reproduce an affine function of the spot pixels at j,
 is 0 where the columns vary linearly across the spots (a fine cell's plane models that:
-ilt.isf.fine) and of order 1 where they jump. A first difference of neighbouring columns
-would also flag smooth gradients, which the fine fit already handles: on the box it put
-new beams all over the faces, and a refined scan of 162 beams only matched a uniform one of
-178, where this residual does better (docs/refine.md).
+ilt.isf.fine) and of order 1 where they jump. A line of spots (flatland) places by it; a
+grid places its folds by the build's fold lines and its other beams by how far apart its
+neighbouring beams are in what they light ("A grid's edges" below).
 
-An edge ``e = (i, k)`` has the share ``s_e = w_e (r_i^2 + r_k^2) / 2``, ``w_e`` the region
-it stands for (its length in pixels to the power of the scan's dimension: 1 for a line,
-2 for a grid), and the scan's **indicator** is ``E = sqrt(sum_e s_e / sum_e w_e)``. Two
+On a line, an edge ``e = (i, k)`` has the share ``s_e = w_e (r_i^2 + r_k^2) / 2``, ``w_e`` the
+region it stands for (its length in pixels), and the scan's **indicator** is
+``E = sqrt(sum_e s_e / sum_e w_e)``. Two
 new beams at the thirds of edge e split it in three: the third holding the change keeps
 the residual and the other two are smooth, so the edge's share falls by two thirds (the
 **gain**, ``s_e / 3`` for each of the two beams, in units of E^2), and each third is left
@@ -28,14 +27,31 @@ with ``s_e / 9``. Placement is greedy on the gain, with the thirds back in the q
 beam lands closer than ``min_spacing`` pixels to another, nor outside the ISF's cells
 (where the scan saw no surface).
 
-Thirds, not halves: where the change is a fold between two beams, halfway is the fold
-itself, and a beam there lights both faces with a spot the crease cuts; and a beam
+Thirds, not halves, on a line: where the change is a fold between two beams, halfway is
+the fold itself, and a beam there lights both faces with a spot the crease cuts; and a beam
 halfway between two others leaves the cells next to the fold uneven (one end at the
 fold, the other a quarter spacing away). The thirds land a sixth of the spacing to each
 side of a fold halfway between its beams, and with the two old beams make a lattice a
 third as wide whose cells end at the fold. On the rendered M (16 beams, exact frames),
 the 3 fold edges halved: bounce error 0.177 against the 16 beams' 0.102; trisected: 0.076
 (docs/refine.md).
+
+**A grid's edges.** On a grid of spots the edge's share is the **transport change**
+``s_e = D_e^2``, the squared distance between its two beams' unit columns off their own
+rows, with the noise's expected share taken off (:func:`transport_change`), over a weight of
+1 an edge; the indicator is the root mean square of D over the edges. One beam at the
+middle of the edge halves it: each half keeps a quarter of the share (the change along a
+smooth edge is about linear), so the gain is ``s_e / 2`` and each half goes back in the
+queue with ``s_e / 4``. Why a distance in T and not the residual, nor the pixels: the scene's
+grid is not in the pixels. The box's floor images its square cells as rhombi whose short
+diagonal (12.8 px) is shorter than their sides (14.3 px), so a pixel-length weight splits the
+floor's sides first, and the cells' centres (the best beams there: the quincunx with the fold
+pairs is the best half-lattice scan measured) come last. In T the floor's diagonals are
+1.8 x its sides in D^2, about the scene's 2, as on the walls. On the box's 2x lattice (2e4 e-,
+three draws of the noise), after the fold pairs: +108 beams 0.0557 -> 0.0539 by D^2 halves,
+within 0.1% of the fold midpoints + centres' 0.0540; the residual by pixel length, halved:
+0.0560; weighted by D^2: 0.0550 (docs/refine.md, "A grid by what its beams light").
+The residual still shades refine.png, and a line's placement is as below.
 
 **Noise.** Under a sensor's noise every column's residual holds the noise of the entries
 it sums: on the noisy box (2e4 e-) a median 0.41 of the column away from its folds, 0.53 in
@@ -58,7 +74,8 @@ within the rows are not split in thirds. Flatland scans (a line of spots) have n
 folds are points, split in thirds as above.
 
 Costs: one pass over T's rows in blocks, a sparse product of O(m x edges) (about 3 m
-edges in 2D), so the decision at m = 4096 reads T once (benchmarks/bench_refine.py).
+edges in 2D), and on a grid a second pass for the edges' dot products, so the decision at
+m = 4096 reads T twice (benchmarks/bench_refine.py --timing-m).
 """
 
 from __future__ import annotations
@@ -201,6 +218,34 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
     return np.where(scale > 0, np.sqrt(np.maximum(residual2, 0.0)) / np.where(scale > 0, scale, 1.0), 0.0)
 
 
+def transport_change(T: np.ndarray, pairs: np.ndarray, variance: np.ndarray | None = None) -> np.ndarray:
+    """(E,) the squared distance between the unit columns of each pair's two beams,
+    ``D_e^2 = sum_r (T_ri / |t_i| - T_rk / |t_k|)^2`` over the rows that are not the two
+    spots' own, with the noise's expected share (``sum_r V_ri / |t_i|^2 + V_rk / |t_k|^2``,
+    ``variance`` from ``T_var.npy``) taken off: how far apart the two beams are in what they
+    light (module doc, "A grid's edges"). One pass over T's rows (and V's) in blocks."""
+    m = T.shape[0]
+    i, k = pairs[:, 0], pairs[:, 1]
+    norm2, dots, variance_sums = np.zeros(m), np.zeros(len(pairs)), np.zeros(m)
+    for r0 in range(0, m, ROW_BLOCK):
+        block = np.asarray(T[r0:r0 + ROW_BLOCK], dtype=np.float64)
+        norm2 += np.einsum("rj,rj->j", block, block)
+        dots += np.einsum("re,re->e", block[:, i], block[:, k])
+        if variance is not None:
+            variance_sums += np.asarray(variance[r0:r0 + ROW_BLOCK], dtype=np.float64).sum(axis=0)
+    n = np.sqrt(np.maximum(norm2, np.finfo(np.float64).tiny))
+    # all rows: |t_i/n_i - t_k/n_k|^2 = 2 - 2 t_i.t_k / (n_i n_k); then the two own rows' terms off
+    change = 2.0 - 2.0 * dots / (n[i] * n[k])
+    for row in (i, k):
+        change -= (np.asarray(T[row, i], np.float64) / n[i] - np.asarray(T[row, k], np.float64) / n[k]) ** 2
+    if variance is not None:
+        noise = variance_sums[i] / n[i] ** 2 + variance_sums[k] / n[k] ** 2
+        for row in (i, k):
+            noise -= np.asarray(variance[row, i], np.float64) / n[i] ** 2 + np.asarray(variance[row, k], np.float64) / n[k] ** 2
+        change -= noise
+    return np.maximum(change, 0.0)
+
+
 @dataclass(frozen=True)
 class Placement:
     """The chosen beams, best first: ``targets`` (K, 2) pixels (x, y), ``gain`` (K,) what
@@ -276,8 +321,8 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
     """Up to ``count`` new beam targets (pixels) for the scan of T (m, m) with spots at
     ``samples`` (m, 2), greedy on the gain of the module doc.
 
-    Beams come in pairs (the thirds of an edge, or the two sides of a fold): an odd
-    ``count`` places one fewer.
+    On a grid of spots an edge takes one beam at its middle, a fold two (one each side);
+    on a line an edge takes two, at its thirds, so that an odd ``count`` places one fewer.
     min_spacing: no target closer than this (pixels) to a spot or another target (default:
     a quarter of the median neighbour distance, so an edge is split once);
     covered: ``covered(points (n, 2)) -> (n,) bool``, False where no beam should go (no
@@ -287,19 +332,28 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
     each side at the same place along it (module doc, "Folds"). Fewer than ``count``
     targets come back when no edge has room or gain left.
     """
-    if count < 2:
-        raise RefineError(f"the number of new beams must be at least 2 (they come in pairs: an edge is split in "
-                          f"thirds), got {count}")
+    if count < 1:
+        raise RefineError(f"the number of new beams must be at least 1, got {count}")
     samples = np.asarray(samples, dtype=np.float64)
     edges = neighbour_edges(samples)
+    if count < 2 and edges.dimension == 1:
+        raise RefineError(f"the number of new beams must be at least 2 on a line of spots (they come in pairs: "
+                          f"an edge is split in thirds), got {count}")
     residual = prediction_residual(T, edges.coords, neighbour_lists(edges, len(samples)), variance)
-    weight = edges.length ** edges.dimension
-    score = weight * (residual[edges.pairs[:, 0]] ** 2 + residual[edges.pairs[:, 1]] ** 2) / 2
-    total_weight = float(weight.sum())
+    median = float(np.median(edges.length)) if len(edges.length) else 0.0
+    if edges.dimension == 1:
+        weight = edges.length
+        score = weight * (residual[edges.pairs[:, 0]] ** 2 + residual[edges.pairs[:, 1]] ** 2) / 2
+    else:                                         # module doc, "A grid's edges"
+        weight = np.ones(len(edges.pairs))
+        score = transport_change(T, edges.pairs, variance)
+    total_weight = float(weight.sum()) if median > 0 else 0.0
     if total_weight <= 0:
         raise RefineError("the spots have no neighbours at a distance: nothing to refine")
     before = float(np.sqrt(score.sum() / total_weight))
-    median = float(np.median(edges.length))
+    # each spot's change: the mean share of its edges (a fold gap's share, 2D)
+    spot_change = (np.bincount(edges.pairs.ravel(), weights=np.repeat(score, 2), minlength=len(samples))
+                   / np.maximum(np.bincount(edges.pairs.ravel(), minlength=len(samples)), 1))
     spacing = median / 4 if min_spacing is None else float(min_spacing)
     rows = fold_rows(samples, folds, median) if folds and edges.dimension == 2 else []
     # the edges within a fold's rows (along it, and across it from row to row) are split by
@@ -312,21 +366,30 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
     points = list(samples)                        # the spots, then the targets as they are placed
     # a heap on (class: fold gaps first, -gain of the entry's two beams, tie-break, kind, entry)
     tie = itertools.count()                       # unique: the entries themselves are never compared
-    heap = [(1, -2 * float(s) / 3, next(tie), "thirds", (int(a), int(b)))
+    # a line's edges split in thirds (two beams, 2/3 of the share), a grid's at the middle
+    # (one beam, half of it): module doc
+    split, first = ("thirds", 2 / 3) if edges.dimension == 1 else ("halves", 1 / 2)
+    heap = [(1, -first * float(s), next(tie), split, (int(a), int(b)))
             for n, (s, (a, b)) in enumerate(zip(score, edges.pairs)) if s > 0 and not in_rows[n]]
     for f, row in enumerate(rows):
         for t0, t1 in zip(row.stations[:-1], row.stations[1:]):
-            s = _gap_score(row, t0, t1, residual, median)
+            s = _gap_score(row, t0, t1, spot_change, median)
             if s > 0:
                 heap.append((_fold_class(t1 - t0, median), -s / 2, next(tie), "fold", (f, t0, t1, s)))
     heapq.heapify(heap)
     tree, targets, gains = cKDTree(samples), [], []
     remaining = float(score.sum())
     pairs = 0
-    while heap and len(targets) + 2 <= count:
+    while heap and len(targets) < count:
         _, neg, _, kind, entry = heapq.heappop(heap)
         gain = -neg
-        if kind == "thirds":
+        if kind == "halves":
+            a, b = entry
+            s = 2 * gain
+            new = [(points[a] + points[b]) / 2]
+            if np.linalg.norm(points[a] - points[b]) / 2 < spacing:
+                continue
+        elif kind == "thirds":
             a, b = entry
             s = 3 * gain / 2
             new = [points[a] + (points[b] - points[a]) * f for f in (1 / 3, 2 / 3)]
@@ -338,6 +401,8 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
             if (t1 - t0) / 2 < spacing:
                 continue
             new = row.pair((t0 + t1) / 2)
+        if len(targets) + len(new) > count:      # a pair where one beam is left
+            continue
         if covered is not None and not bool(np.all(covered(np.array(new)))):
             continue
         if any(tree.query(t)[0] < spacing * (1 - 1e-9) or any(np.hypot(*(t - q)) < spacing for q in targets)
@@ -346,9 +411,12 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
         n = len(points)
         points.extend(new)
         targets.extend(new)
-        gains.extend([gain / 2, gain / 2])
+        gains.extend([gain / len(new)] * len(new))
         remaining -= gain
-        if kind == "thirds":
+        if kind == "halves":
+            for x, y in ((a, n), (n, b)):          # each half keeps a quarter of the share
+                heapq.heappush(heap, (1, -s / 8, next(tie), "halves", (x, y)))
+        elif kind == "thirds":
             for x, y in ((a, n), (n, n + 1), (n + 1, b)):
                 heapq.heappush(heap, (1, -2 * s / 27, next(tie), "thirds", (x, y)))
         else:
@@ -367,10 +435,11 @@ def _fold_class(gap: float, spacing: float) -> int:
     return 0 if gap > FOLD_SPACING * spacing * (1 + 1e-9) else 1
 
 
-def _gap_score(row: FoldRows, t0: float, t1: float, residual, spacing: float) -> float:
-    """The share of a gap between two stations along a fold: the edges along it on the two
-    sides (length^2), each with the mean squared residual of the rows' spots at its ends."""
+def _gap_score(row: FoldRows, t0: float, t1: float, spot_change, spacing: float) -> float:
+    """The share of a gap between two stations along a fold: the two edges along it (one
+    each side), each the mean share of the edges of the rows' spots at the gap's ends, by
+    the gap's length in spacings squared (a halved gap keeps a quarter each half)."""
     ends = [k for k, t in row.place.items() if min(abs(t - t0), abs(t - t1)) < spacing / 4]
     if not ends:
         return 0.0
-    return 2 * (t1 - t0) ** 2 * float(np.mean(residual[ends] ** 2))
+    return 2 * ((t1 - t0) / spacing) ** 2 * float(np.mean(spot_change[ends]))

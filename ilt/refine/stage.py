@@ -52,8 +52,7 @@ def refine(isf_dir: str | os.PathLike, out: str | os.PathLike, beams: int, captu
     anything is written.
     """
     if beams < 1:
-        raise RefineError(f"--beams must be at least 2 (new beams come in pairs: an edge split in thirds), "
-                          f"got {beams}")
+        raise RefineError(f"--beams must be at least 1, got {beams}")
     isf_dir = Path(isf_dir)
     isf = load_isf(isf_dir, mmap=True)
     if isf.samples is None:
@@ -71,8 +70,8 @@ def refine(isf_dir: str | os.PathLike, out: str | os.PathLike, beams: int, captu
         angles = aim(placement.targets, isf.samples, kept_angles)
         check_reach(angles, placement.targets, units, ptu, str(Path(capture) / MANIFEST))
     if len(placement.targets) < beams:
-        log.info("%d of the %d beams asked for have room and gain (they come in pairs; no edge left wider than 3 x "
-                 "--min-spacing inside the cells)", len(placement.targets), beams)
+        log.info("%d of the %d beams asked for have room and gain (no edge left wider than 2 x --min-spacing "
+                 "inside the cells, 3 x on a line of spots)", len(placement.targets), beams)
     summary = {"m": isf.m, "asked": beams, "beams": len(placement.targets), "fold_pairs": placement.fold_pairs,
                "folds": len(folds), "noise": variance is not None,
                "indicator": {"before": placement.before, "after": placement.after},

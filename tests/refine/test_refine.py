@@ -114,6 +114,47 @@ def test_the_noise_is_taken_off_the_residual_and_nothing_else():
         pytest.approx(prediction_residual(T, line.coords, neighbour_lists(line, 8)), abs=1e-15)
 
 
+def test_the_transport_change_is_the_distance_of_unit_columns_off_their_own_rows(monkeypatch):
+    from ilt.refine.indicator import transport_change
+
+    monkeypatch.setattr("ilt.refine.indicator.ROW_BLOCK", 5)      # several row blocks
+    rng = np.random.default_rng(5)
+    T, V = rng.uniform(0.5, 1.5, (12, 12)), rng.uniform(0, 1e-3, (12, 12))
+    pairs = np.array([[0, 1], [3, 7], [11, 2]])
+    n = np.linalg.norm(T, axis=0)
+    for variance in (None, V):
+        want = []
+        for i, k in pairs:
+            rows = np.setdiff1d(np.arange(12), [i, k])
+            d2 = np.sum((T[rows, i] / n[i] - T[rows, k] / n[k]) ** 2)
+            if variance is not None:
+                d2 -= variance[rows, i].sum() / n[i] ** 2 + variance[rows, k].sum() / n[k] ** 2
+            want.append(max(d2, 0.0))
+        assert transport_change(T, pairs, variance) == pytest.approx(want, rel=1e-9, abs=1e-15)
+
+
+def test_a_grid_edge_is_halved_where_its_beams_light_most_differently():
+    # columns change with the spot's row only: the edges across rows (vertical, diagonal) differ,
+    # the edges along a row do not
+    yy, xx = np.mgrid[0:6, 0:6]
+    samples = np.column_stack([xx.ravel() * 10.0, yy.ravel() * 10.0])
+    a, b = np.random.default_rng(6).uniform(1, 2, (2, len(samples), 1))
+    T = a + b * (samples[:, 1][None, :] / 50) ** 2
+    placement = place_beams(T, samples, 5)
+    assert len(placement.targets) == 5                      # one beam an edge on a grid: 5 is 5
+    edges = neighbour_edges(samples)
+    middles = (samples[edges.pairs[:, 0]] + samples[edges.pairs[:, 1]]) / 2
+    across = samples[edges.pairs[:, 0], 1] != samples[edges.pairs[:, 1], 1]
+    for t in placement.targets:
+        hit = np.flatnonzero(np.all(np.isclose(middles, t), axis=1))
+        assert hit.size == 1 and across[hit[0]]
+    # the first halves the edge that differs most (the rows' last step), for half its share
+    from ilt.refine.indicator import transport_change
+    change = transport_change(T, edges.pairs)
+    assert placement.gain[0] == pytest.approx(change.max() / 2 / len(edges.pairs), rel=1e-9)
+    assert placement.before ** 2 - placement.after ** 2 == pytest.approx(placement.gain.sum(), rel=1e-9)
+
+
 def _fold_grid():
     """Spots on a 10 px grid of 6 columns x 8 rows, a vertical fold at x = 25 between columns
     2 and 3 (spots 5 px from it on each side), and T smooth in the spots (a fold T's rows know
@@ -177,9 +218,11 @@ def test_no_beam_lands_outside_the_cells_nor_closer_than_min_spacing():
     assert len(placement.targets) == 6              # a third of 3.3 px has no room for 3 px: no ninths
 
 
-def test_zero_beams_is_refused():
-    with pytest.raises(RefineError, match="at least 2"):
+def test_zero_beams_is_refused_and_one_on_a_line():
+    with pytest.raises(RefineError, match="at least 1"):
         place_beams(_line_T(4, 1), _line_samples(4), 0)
+    with pytest.raises(RefineError, match="at least 2 on a line"):         # a line's beams come in pairs
+        place_beams(_line_T(4, 1), _line_samples(4), 1)
 
 
 def test_the_aim_inverts_an_affine_rig_exactly():

@@ -39,7 +39,8 @@ with refine's error, interpolated as a power law over the uniform sweep; ratio t
 ``--noise-draws N``: the whole run again under N draws of the frames' noise (the same
 rendered scene; draw 0 is the one a single run makes), then each scan's mean error over
 the draws and refine's ratio to folds + centres per draw. One draw decides little: on the
-box a scan's mean moves 2-4% from one draw to the next (docs/refine.md).
+box a fixed scan's mean moves 1-3% from one draw to the next, refine's up to 7% (each draw
+gives it another base to decide from; docs/refine.md).
 
 ``--keep-covered``: every scan past the base is built keeping the base's coverage (``ilt
 build-isf --keep-covered``, as ``ilt run``'s refine passes build): a lab that scanned the base
@@ -381,15 +382,15 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
             if name not in results:      # a K past the centres' count: every centre, measured once
                 results[name] = (len(base_beams) + len(chosen), errors(
                     case, grown(f"even-{len(chosen)}", base_beams + chosen), mask))
-        folds = fold_beams(scene, spots, base_beams) if even else []
-        if folds and "folds + centres" not in results:
-            chosen = sorted(set(folds) | set(centre_beams(scene, lattice_m, base_beams)))
-            results["folds + centres"] = (len(base_beams) + len(chosen), errors(
-                case, grown("folds-centres", base_beams + chosen), mask))
         if oracle:
             chosen = oracle_beams(case, base, mask, spots, unused, k)
             results[f"oracle +{k} (true errors)"] = (len(base_beams) + k, errors(
                 case, grown(f"oracle-{k}", base_beams + chosen), mask))
+    folds = fold_beams(scene, spots, base_beams) if even else []
+    if folds:                                   # the best half-lattice scan measured: once a scene
+        chosen = sorted(set(folds) | set(centre_beams(scene, lattice_m, base_beams)))
+        results["folds + centres"] = (len(base_beams) + len(chosen), errors(
+            case, grown("folds-centres", base_beams + chosen), mask))
     uniform_mean = {c: float(e.mean()) for c, e in (results[f"uniform {c}"] for c in uniform)}
     if map_png is not None:
         k = max(int(n.split("+")[1]) for n in results if n.startswith("refine +"))
@@ -400,8 +401,8 @@ def bench_scene(root: Path, scene: str, base_m: int, electrons: float, draws: in
                          (f"uniform {same}", scans_dir / f"uniform-{same}{kept}")], mask,
                   map_png.with_name(f"{map_png.stem}-{scene}{map_png.suffix}"))
     noise = f"{electrons:g} e-" if electrons > 0 else "noise-free"
-    noise += f" (noise draw {noise_draw})" if noise_draw else ""
     noise = f"Monte Carlo noise of {samples:g} samples" if samples > 0 else noise
+    noise += f" (noise draw {noise_draw})" if noise_draw else ""
     noise += ", every scan past the base keeping its coverage" if keep_covered else ""
     print(f"\n### {scene}, base m = {len(base_beams)}, lattice {lattice_m} ({factor}x), {noise}; refine decided in "
           + ", ".join(f"{v:.2f} s (+{k})" for k, v in seconds.items()) + " (the command)\n")

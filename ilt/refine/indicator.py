@@ -47,10 +47,11 @@ grid is not in the pixels. The box's floor images its square cells as rhombi who
 diagonal (12.8 px) is shorter than their sides (14.3 px), so a pixel-length weight splits the
 floor's sides first, and the cells' centres (the best beams there: the quincunx with the fold
 pairs is the best half-lattice scan measured) come last. In T the floor's diagonals are
-1.8 x its sides in D^2, about the scene's 2, as on the walls. On the box's 2x lattice (2e4 e-,
-three draws of the noise), after the fold pairs: +108 beams 0.0557 -> 0.0539 by D^2 halves,
-within 0.1% of the fold midpoints + centres' 0.0540; the residual by pixel length, halved:
-0.0560; weighted by D^2: 0.0550 (docs/refine.md, "A grid by what its beams light").
+1.8 x its sides in D^2, about the scene's 2 (the walls, seen square: 1.2-1.5 x). On the box's
+2x lattice (2e4 e-, three draws of the noise), after the fold pairs: +108 beams 0.0557 ->
+0.0539 by D^2 halves, within 0.1% of the fold midpoints + centres' 0.0540. On two draws each:
+the residual by pixel length, halved, 0.0560; the residual weighted by D^2, halved, 0.0550
+(docs/refine.md, "A grid by what its beams light").
 The residual still shades refine.png, and a line's placement is as below.
 
 **Noise.** Under a sensor's noise every column's residual holds the noise of the entries
@@ -74,8 +75,8 @@ within the rows are not split in thirds. Flatland scans (a line of spots) have n
 folds are points, split in thirds as above.
 
 Costs: one pass over T's rows in blocks, a sparse product of O(m x edges) (about 3 m
-edges in 2D), and on a grid a second pass for the edges' dot products, so the decision at
-m = 4096 reads T twice (benchmarks/bench_refine.py --timing-m).
+edges in 2D) and on a grid the edges' dot products in the same pass, so the decision at
+m = 4096 reads T once (benchmarks/bench_refine.py --timing-m).
 """
 
 from __future__ import annotations
@@ -184,22 +185,68 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
     variance: (m, m) each entry's noise variance (build-isf's ``T_var.npy``), or None: the
     residual's expected square from the noise, ``sum_r V_rj + sum_k w_k^2 V_rk``, is taken
     off its square (module doc, "Noise"): what is left is the transport's own change."""
+    W, weights = _interpolation(coords, neighbours)
+    sums = _row_pass(T, variance, W=W)
+    return _residual(T, variance, W, weights, neighbours, sums)
+
+
+def transport_change(T: np.ndarray, pairs: np.ndarray, variance: np.ndarray | None = None) -> np.ndarray:
+    """(E,) the squared distance between the unit columns of each pair's two beams,
+    ``D_e^2 = sum_r (T_ri / |t_i| - T_rk / |t_k|)^2`` over the rows that are not the two
+    spots' own, with the noise's expected share (``sum_r V_ri / |t_i|^2 + V_rk / |t_k|^2``,
+    ``variance`` from ``T_var.npy``) taken off: how far apart the two beams are in what they
+    light (module doc, "A grid's edges"). One pass over T's rows (and V's) in blocks."""
+    return _change(T, variance, pairs, _row_pass(T, variance, pairs=pairs))
+
+
+@dataclass
+class _RowSums:
+    """What one pass over T's rows (and V's) gives: ``residual2`` (m,) the squared columns of
+    T W (or None), ``norm2`` (m,) the squared columns of T, ``dots`` (E,) each pair's columns'
+    dot product (or None), ``variance`` (m,) V's column sums (or None)."""
+
+    residual2: np.ndarray | None
+    norm2: np.ndarray
+    dots: np.ndarray | None
+    variance: np.ndarray | None
+
+
+def _row_pass(T, variance, W=None, pairs=None) -> _RowSums:
+    """Read T (a memory map, say) once in blocks of :data:`ROW_BLOCK` rows for the sums the
+    residual (``W``) and the pairs' change (``pairs``) need."""
     m = T.shape[0]
+    sums = _RowSums(np.zeros(m) if W is not None else None, np.zeros(m),
+                    np.zeros(len(pairs)) if pairs is not None else None, np.zeros(m) if variance is not None else None)
+    for r0 in range(0, m, ROW_BLOCK):
+        block = np.asarray(T[r0:r0 + ROW_BLOCK], dtype=np.float64)
+        sums.norm2 += np.einsum("rj,rj->j", block, block)
+        if W is not None:
+            R = (W.T @ block.T).T                               # block @ W, W sparse
+            sums.residual2 += np.einsum("rj,rj->j", R, R)
+        if pairs is not None:
+            sums.dots += np.einsum("re,re->e", block[:, pairs[:, 0]], block[:, pairs[:, 1]])
+        if variance is not None:
+            sums.variance += np.asarray(variance[r0:r0 + ROW_BLOCK], dtype=np.float64).sum(axis=0)
+    return sums
+
+
+def _interpolation(coords, neighbours) -> tuple[scipy.sparse.csr_matrix, list[np.ndarray]]:
+    """The sparse (m, m) W whose column j is e_j minus j's interpolation weights on its
+    neighbours, and the weights."""
+    m = len(neighbours)
     weights = [interpolation_weights(coords, j, near) if near.size else np.empty(0)
                for j, near in enumerate(neighbours)]
     rows = np.concatenate([np.concatenate([[j], near]) for j, near in enumerate(neighbours)])
     cols = np.concatenate([np.full(1 + near.size, j) for j, near in enumerate(neighbours)])
     vals = np.concatenate([np.concatenate([[1.0], -w]) for w in weights])
-    W = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(m, m))
-    residual2, norm2, variance_sums = np.zeros(m), np.zeros(m), np.zeros(m)
-    for r0 in range(0, m, ROW_BLOCK):
-        block = np.asarray(T[r0:r0 + ROW_BLOCK], dtype=np.float64)
-        R = (W.T @ block.T).T                                   # block @ W, W sparse
-        residual2 += np.einsum("rj,rj->j", R, R)
-        norm2 += np.einsum("rj,rj->j", block, block)
-        if variance is not None:
-            variance_sums += np.asarray(variance[r0:r0 + ROW_BLOCK], dtype=np.float64).sum(axis=0)
-    noise2 = W.multiply(W).T @ variance_sums if variance is not None else np.zeros(m)   # all rows, through W^2
+    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(m, m)), weights
+
+
+def _residual(T, variance, W, weights, neighbours, sums: _RowSums) -> np.ndarray:
+    """:func:`prediction_residual` from the pass's sums."""
+    m = T.shape[0]
+    residual2, norm2 = sums.residual2.copy(), sums.norm2.copy()
+    noise2 = W.multiply(W).T @ sums.variance if variance is not None else np.zeros(m)   # all rows, through W^2
     # leave out the rows of the spots of j and its neighbours: a difference of sums, so what
     # is left below their rounding (a few eps of the sum over all rows) is zero, not
     # sqrt(eps) of a residual (1.5e-7 where the rows left out held all of it)
@@ -218,30 +265,19 @@ def prediction_residual(T: np.ndarray, coords: np.ndarray, neighbours: list[np.n
     return np.where(scale > 0, np.sqrt(np.maximum(residual2, 0.0)) / np.where(scale > 0, scale, 1.0), 0.0)
 
 
-def transport_change(T: np.ndarray, pairs: np.ndarray, variance: np.ndarray | None = None) -> np.ndarray:
-    """(E,) the squared distance between the unit columns of each pair's two beams,
-    ``D_e^2 = sum_r (T_ri / |t_i| - T_rk / |t_k|)^2`` over the rows that are not the two
-    spots' own, with the noise's expected share (``sum_r V_ri / |t_i|^2 + V_rk / |t_k|^2``,
-    ``variance`` from ``T_var.npy``) taken off: how far apart the two beams are in what they
-    light (module doc, "A grid's edges"). One pass over T's rows (and V's) in blocks."""
-    m = T.shape[0]
+def _change(T, variance, pairs, sums: _RowSums) -> np.ndarray:
+    """:func:`transport_change` from the pass's sums."""
     i, k = pairs[:, 0], pairs[:, 1]
-    norm2, dots, variance_sums = np.zeros(m), np.zeros(len(pairs)), np.zeros(m)
-    for r0 in range(0, m, ROW_BLOCK):
-        block = np.asarray(T[r0:r0 + ROW_BLOCK], dtype=np.float64)
-        norm2 += np.einsum("rj,rj->j", block, block)
-        dots += np.einsum("re,re->e", block[:, i], block[:, k])
-        if variance is not None:
-            variance_sums += np.asarray(variance[r0:r0 + ROW_BLOCK], dtype=np.float64).sum(axis=0)
-    n = np.sqrt(np.maximum(norm2, np.finfo(np.float64).tiny))
+    n = np.sqrt(np.maximum(sums.norm2, np.finfo(np.float64).tiny))
     # all rows: |t_i/n_i - t_k/n_k|^2 = 2 - 2 t_i.t_k / (n_i n_k); then the two own rows' terms off
-    change = 2.0 - 2.0 * dots / (n[i] * n[k])
+    change = 2.0 - 2.0 * sums.dots / (n[i] * n[k])
     for row in (i, k):
         change -= (np.asarray(T[row, i], np.float64) / n[i] - np.asarray(T[row, k], np.float64) / n[k]) ** 2
     if variance is not None:
-        noise = variance_sums[i] / n[i] ** 2 + variance_sums[k] / n[k] ** 2
+        noise = sums.variance[i] / n[i] ** 2 + sums.variance[k] / n[k] ** 2
         for row in (i, k):
-            noise -= np.asarray(variance[row, i], np.float64) / n[i] ** 2 + np.asarray(variance[row, k], np.float64) / n[k] ** 2
+            noise -= (np.asarray(variance[row, i], np.float64) / n[i] ** 2
+                      + np.asarray(variance[row, k], np.float64) / n[k] ** 2)
         change -= noise
     return np.maximum(change, 0.0)
 
@@ -339,23 +375,28 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
     if count < 2 and edges.dimension == 1:
         raise RefineError(f"the number of new beams must be at least 2 on a line of spots (they come in pairs: "
                           f"an edge is split in thirds), got {count}")
-    residual = prediction_residual(T, edges.coords, neighbour_lists(edges, len(samples)), variance)
-    median = float(np.median(edges.length)) if len(edges.length) else 0.0
-    if edges.dimension == 1:
+    if not len(edges.pairs) or float(edges.length.sum()) <= 0:
+        raise RefineError("the spots have no neighbours at a distance: nothing to refine")
+    # one pass over T: the residual, and on a grid the edges' change too
+    neighbours = neighbour_lists(edges, len(samples))
+    W, weights = _interpolation(edges.coords, neighbours)
+    grid = edges.dimension == 2
+    sums = _row_pass(T, variance, W=W, pairs=edges.pairs if grid else None)
+    residual = _residual(T, variance, W, weights, neighbours, sums)
+    median = float(np.median(edges.length))
+    if grid:                                      # module doc, "A grid's edges"
+        weight = np.ones(len(edges.pairs))
+        score = _change(T, variance, edges.pairs, sums)
+    else:
         weight = edges.length
         score = weight * (residual[edges.pairs[:, 0]] ** 2 + residual[edges.pairs[:, 1]] ** 2) / 2
-    else:                                         # module doc, "A grid's edges"
-        weight = np.ones(len(edges.pairs))
-        score = transport_change(T, edges.pairs, variance)
-    total_weight = float(weight.sum()) if median > 0 else 0.0
-    if total_weight <= 0:
-        raise RefineError("the spots have no neighbours at a distance: nothing to refine")
+    total_weight = float(weight.sum())
     before = float(np.sqrt(score.sum() / total_weight))
-    # each spot's change: the mean share of its edges (a fold gap's share, 2D)
-    spot_change = (np.bincount(edges.pairs.ravel(), weights=np.repeat(score, 2), minlength=len(samples))
-                   / np.maximum(np.bincount(edges.pairs.ravel(), minlength=len(samples)), 1))
     spacing = median / 4 if min_spacing is None else float(min_spacing)
-    rows = fold_rows(samples, folds, median) if folds and edges.dimension == 2 else []
+    rows = fold_rows(samples, folds, median) if folds and grid else []
+    if rows:        # each spot's change: the mean share of its edges (a fold gap's share)
+        spot_change = (np.bincount(edges.pairs.ravel(), weights=np.repeat(score, 2), minlength=len(samples))
+                       / np.maximum(np.bincount(edges.pairs.ravel(), minlength=len(samples)), 1))
     # the edges within a fold's rows (along it, and across it from row to row) are split by
     # the fold's pairs, not in thirds
     in_rows = np.zeros(len(edges.pairs), bool)
@@ -368,7 +409,7 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
     tie = itertools.count()                       # unique: the entries themselves are never compared
     # a line's edges split in thirds (two beams, 2/3 of the share), a grid's at the middle
     # (one beam, half of it): module doc
-    split, first = ("thirds", 2 / 3) if edges.dimension == 1 else ("halves", 1 / 2)
+    split, first = ("halves", 1 / 2) if grid else ("thirds", 2 / 3)
     heap = [(1, -first * float(s), next(tie), split, (int(a), int(b)))
             for n, (s, (a, b)) in enumerate(zip(score, edges.pairs)) if s > 0 and not in_rows[n]]
     for f, row in enumerate(rows):

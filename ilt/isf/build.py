@@ -786,7 +786,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     None when not applied), and the barrier mask, the far light and the spot spacing that
     :mod:`ilt.isf.fold_transfer` reads the folds from (None when not applied)."""
     from ilt.isf.folds import FOLD_DEPTH, FOLD_LOW, FOLD_SIGMAS, NOMINAL_ELECTRONS, cells_at_barriers, far_chunk, far_counts, \
-        far_from_sum, fold_cells, near_chunk, nominal_noise, valley_barriers
+        far_from_sum, fold_cells, near_chunk, nominal_noise, spot_line, valley_barriers
 
     judge = noise
     if noise is None:
@@ -796,6 +796,8 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
                 None, None
         judge = nominal_noise(brightest)
     spacing = spacing_of(on_grid)
+    along = spot_line(on_grid)          # a line of spots: each frame's stripe across it, not a disc
+    near = "disc" if along is None else "stripe across the spots' line"
     row = {b: i for i, b in enumerate(plan)}
     light = np.zeros(hdr.frame_shape)
     crowded = sum_beams is not None and fresh * len(sum_beams) > SUM_OUTLIER_SHARE
@@ -804,24 +806,26 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
         dropped = np.array([np.nan, np.nan])
         tasks = [([hdr.files[b] for b in c], hdr.frame_shape,
                   np.array([on_grid[row[b]] if b in row else dropped for b in c]).reshape(-1, 2), spacing,
-                  noise is None)
+                  noise is None, along)
                  for c in chunks(sum_beams, chunk)]
         with beam_executor(executor, workers) as ex:
             for part in run_chunks(near_chunk, tasks, ex):
                 light += part
         light = far_from_sum(frame_sum, light, noise, len(sum_beams))
-        source = "sum.exr less each frame's disc"
+        source = f"sum.exr less each frame's {near}"
     else:
         tasks = []
         for c in chunks(plan, chunk):
             rows = [row[b] for b in c]
-            tasks.append(([hdr.files[b] for b in c], hdr.frame_shape, on_grid[rows], spacing, noise, discs[rows]))
+            tasks.append(([hdr.files[b] for b in c], hdr.frame_shape, on_grid[rows], spacing, noise, discs[rows],
+                          along))
         with beam_executor(executor, workers) as ex:
             for part in run_chunks(far_chunk, tasks, ex):
                 light += part
-        source = "a pass over the frames" + (f" (outliers in {fresh:.2g} of each frame's pixels)" if crowded else "")
+        source = "a pass over the frames" + (f" (outliers in {fresh:.2g} of each frame's pixels)" if crowded else "") \
+            + ("" if along is None else f", each frame's {near} left out")
     valleys = {}
-    barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing), judge, labels >= 0, spacing,
+    barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing, along), judge, labels >= 0, spacing,
                                valleys)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
     at_folds = cells_at_barriers(labels, barriers)

@@ -12,7 +12,14 @@ The far light is the scan's sum (``sum.exr``) less each frame's disc about its s
 (:func:`near_chunk`, reading the disc's rows only; :func:`far_from_sum`), or, where the sum
 has no such use (no ``sum.exr``, a dark frame taken off it, fireflies crowding it:
 :data:`SUM_OUTLIER_SHARE`), each frame summed where it is far from its spot
-(:func:`far_chunk`, a pass over the frames).
+(:func:`far_chunk`, a pass over the frames). Where the spots lie on a line (a flatland
+scan, :func:`spot_line`) a frame's near light is a stripe across its strip, not a disc: each
+frame's pixels within a spacing of its spot *along the line* are left out, at any distance
+across it. A disc one spacing wide left the strip's top and bottom rows in wherever the strip
+is higher than a spacing, where the near spots' own light hid the fold's valley: on the M's
+4x lattice (2e4 e-) the barriers of a 64-beam scan (12 px between spots, a 32-row strip)
+stopped at the rows the discs did not reach, and a cell straddled the fold; 0.0939 against
+the 48 beams' 0.0758, now 0.0653 (docs/fullres.md "A flatland spot's stripe").
 :func:`valley_barriers` smooths that light by a Gaussian of a quarter spacing and takes the
 larger eigenvalue of its Hessian, over its noise (the frames' noise model through the same
 filters). Barriers are its ridge pixels (local maxima across the valley) above
@@ -65,6 +72,25 @@ FOLD_FOLLOW, FOLLOW_SPACINGS, FOLLOW_WIDTH = 1.5, 4.0, 1.5
 LONG_SPACINGS = 2.0
 
 
+#: spots are on a line when they stray across its principal axis by less than this share of
+#: their spacing along it, rms (a flatland plan's spots jitter across it by a pixel)
+LINE_SPREAD = 0.25
+
+
+def spot_line(centroids: np.ndarray) -> np.ndarray | None:
+    """The unit direction (x, y) of the line the spots lie on (:data:`LINE_SPREAD`), or None:
+    a grid, or fewer than 3 spots (ilt.refine reads its neighbours along the same line)."""
+    centroids = np.asarray(centroids, dtype=np.float64)
+    if len(centroids) < 3:
+        return None
+    centred = centroids - centroids.mean(axis=0)
+    _, singular, axes = np.linalg.svd(centred, full_matrices=False)
+    spacing = float(np.median(np.diff(np.sort(centred @ axes[0]))))
+    if singular[1] / np.sqrt(len(centroids)) <= LINE_SPREAD * spacing:
+        return axes[0]
+    return None
+
+
 def spacing_of(centroids: np.ndarray) -> float:
     """The median distance (px) from a spot to its nearest neighbour."""
     from scipy.spatial import cKDTree
@@ -74,11 +100,12 @@ def spacing_of(centroids: np.ndarray) -> float:
     return float(np.median(cKDTree(centroids).query(centroids, k=2)[0][:, 1]))
 
 
-def far_chunk(files, shape, centres, spacing, noise=None, discs=None):
+def far_chunk(files, shape, centres, spacing, noise=None, discs=None, along=None):
     """Worker: the chunk's frames summed where farther than ``spacing`` from their own spot,
     (H, W) float64, each frame's isolated outliers replaced first as build-isf's own pass
     replaces them (:func:`ilt.isf.outliers.clamp_isolated`, with ``noise`` and each spot's
-    disc radius in ``discs``): a firefly left in would read as a valley's rim."""
+    disc radius in ``discs``): a firefly left in would read as a valley's rim. ``along``: the
+    spots' line (:func:`spot_line`): a stripe across it instead of the disc (module doc)."""
     from ilt.io.frames import load_frame
     from ilt.isf.outliers import clamp_isolated
 
@@ -89,14 +116,14 @@ def far_chunk(files, shape, centres, spacing, noise=None, discs=None):
         if noise is not None:
             clamp_isolated(frame, noise, centre, float(discs[k]))
         light += frame
-        near = _disc(centre, shape, spacing)          # and the disc about the spot taken back out
+        near = _disc(centre, shape, spacing, along)   # and the disc about the spot taken back out
         if near is not None:
             window, inside = near
             light[window][inside] -= frame[window][inside]
     return light
 
 
-def near_chunk(files, shape, centres, radius, taper: bool = False):
+def near_chunk(files, shape, centres, radius, taper: bool = False, along=None):
     """Worker: (H, W) float64, the chunk's frames summed within ``radius`` of their own
     spot (``centres``), each read only over the rows of that disc; a centre of NaN: the
     whole frame (a beam build-isf dropped, whose frame the scan's sum holds). The scan's
@@ -108,7 +135,8 @@ def near_chunk(files, shape, centres, radius, taper: bool = False):
     spots either side of it and took in the next ones: it dipped midway between every two
     spots by itself, a valley of the lattice's period that noise hides and noise-free frames
     show (judged against :func:`nominal_noise`, the emulated rig's 16 beams split their cells
-    there, the flashlight's bounce 2 0.07 -> 0.14)."""
+    there, the flashlight's bounce 2 0.07 -> 0.14). ``along``: the spots' line
+    (:func:`spot_line`): the stripe across it (module doc), tapered by the distance along it."""
     from ilt.io.frames import load_frame, read_frame_rows
 
     light = np.zeros(shape)
@@ -116,13 +144,15 @@ def near_chunk(files, shape, centres, radius, taper: bool = False):
         if not np.all(np.isfinite(centre)):
             light += load_frame(path, shape)
             continue
-        near = _disc(centre, shape, 2 * radius if taper else radius)
+        near = _disc(centre, shape, 2 * radius if taper else radius, along)
         if near is not None:
             (rows, cols), inside = near
             values = read_frame_rows(path, shape, (rows.start, rows.stop))[:, cols]
             if taper:
                 yy, xx = np.ogrid[rows, cols]
-                t = np.clip((np.hypot(xx - centre[0], yy - centre[1]) - radius) / radius, 0.0, 1.0)
+                distance = np.hypot(xx - centre[0], yy - centre[1]) if along is None else \
+                    np.abs((xx - centre[0]) * along[0] + (yy - centre[1]) * along[1])
+                t = np.clip((distance - radius) / radius, 0.0, 1.0)
                 values = values * (1.0 - t * t * (3.0 - 2.0 * t))
             light[rows, cols][inside] += values[inside]
     return light
@@ -167,10 +197,28 @@ def far_from_sum(frame_sum: np.ndarray, near: np.ndarray, noise, frames: int) ->
     return light
 
 
-def _disc(centre, shape, radius: float):
+def _disc(centre, shape, radius: float, along=None):
     """The window about ``centre`` (x, y) and the mask of its pixels within ``radius``
-    (inclusive) of it, or None when the disc misses the frame."""
+    (inclusive) of it, or None when the disc misses the frame. ``along``: the unit direction
+    of the line the spots lie on (:func:`spot_line`): the pixels within ``radius`` of the spot
+    along it, at any distance across (a flatland scan's spot lights a stripe across its strip)."""
     x, y = centre
+    if along is not None:
+        # the stripe's window: all of the frame across the line, its width along it
+        ax, ay = abs(float(along[0])), abs(float(along[1]))
+        height, width = shape
+        r0, r1, c0, c1 = 0, height, 0, width
+        if ax >= ay:
+            half = (radius + max(y, height - 1 - y) * ay) / ax
+            c0, c1 = max(0, int(np.floor(x - half))), min(width, int(np.ceil(x + half)) + 1)
+        else:
+            half = (radius + max(x, width - 1 - x) * ax) / ay
+            r0, r1 = max(0, int(np.floor(y - half))), min(height, int(np.ceil(y + half)) + 1)
+        if r0 >= r1 or c0 >= c1:
+            return None
+        rows, cols = np.ogrid[r0:r1, c0:c1]
+        inside = np.abs((cols - x) * along[0] + (rows - y) * along[1]) <= radius
+        return (slice(r0, r1), slice(c0, c1)), inside
     reach = int(np.ceil(radius))
     r0, r1 = max(0, int(np.floor(y)) - reach), min(shape[0], int(np.ceil(y)) + reach + 1)
     c0, c1 = max(0, int(np.floor(x)) - reach), min(shape[1], int(np.ceil(x)) + reach + 1)
@@ -180,12 +228,13 @@ def _disc(centre, shape, radius: float):
     return (slice(r0, r1), slice(c0, c1)), (cols - x) ** 2 + (rows - y) ** 2 <= radius**2
 
 
-def far_counts(centroids: np.ndarray, shape, spacing: float) -> np.ndarray:
+def far_counts(centroids: np.ndarray, shape, spacing: float, along=None) -> np.ndarray:
     """(H, W) float64: how many frames count in the far light at each pixel (those whose
-    spot is farther than ``spacing``): every frame less the discs about the spots."""
+    spot is farther than ``spacing``): every frame less the discs about the spots (``along``:
+    the stripes across the spots' line, :func:`spot_line`)."""
     count = np.full(shape, float(len(centroids)))
     for centre in centroids:
-        near = _disc(centre, shape, spacing)
+        near = _disc(centre, shape, spacing, along)
         if near is not None:
             count[near[0]] -= near[1]
     return count
@@ -515,5 +564,6 @@ def _nearest_region(regions: np.ndarray, pixel: np.ndarray, reach: int) -> int:
     return int(window[rows[k], cols[k]])
 
 
-__all__ = ["DEPTH_SMOOTH_MIN", "FOLD_DEPTH", "FOLD_FLAT_PX", "FOLD_LOW", "FOLD_SIGMAS", "NOMINAL_ELECTRONS", "SUM_OUTLIER_SHARE", "cells_at_barriers", "far_chunk", "far_counts", "far_from_sum", "fold_cells", "near_chunk",
-           "nominal_noise", "spacing_of", "sum_noise", "valley_barriers", "valley_depth"]
+__all__ = ["DEPTH_SMOOTH_MIN", "FOLD_DEPTH", "FOLD_FLAT_PX", "FOLD_LOW", "FOLD_SIGMAS", "LINE_SPREAD", "NOMINAL_ELECTRONS",
+           "SUM_OUTLIER_SHARE", "cells_at_barriers", "far_chunk", "far_counts", "far_from_sum", "fold_cells",
+           "near_chunk", "nominal_noise", "spacing_of", "spot_line", "sum_noise", "valley_barriers", "valley_depth"]

@@ -94,9 +94,6 @@ ROW_BLOCK = 256
 #: a Delaunay edge longer than this many times the nearer of its ends' nearest-neighbour distances
 #: bridges a gap in the scan (the hull's slivers, void between surfaces): not a neighbour
 MAX_EDGE_RATIO = 2.5
-#: spots whose rms distance from their principal line is below this fraction of their
-#: spacing along it are a line (a flatland plan's spots jitter across it by a pixel)
-LINE_SPREAD = 0.25
 #: a spot within this many spacings of a fold line is in the row beside it (module doc, "Folds")
 ROW_REACH = 0.75
 #: the rows beside a fold are split in pairs before anything else until their spots are this
@@ -123,14 +120,14 @@ class Edges:
 def neighbour_edges(samples: np.ndarray) -> Edges:
     """The neighbour pairs of (m, 2) spot pixels: consecutive along the line when the
     spots are collinear, else the Delaunay edges that do not bridge a gap."""
+    from ilt.isf.folds import spot_line
+
     samples = np.asarray(samples, dtype=np.float64)
     centred = samples - samples.mean(axis=0)
-    _, singular, axes = np.linalg.svd(centred, full_matrices=False)
-    along = np.sort(centred @ axes[0])
-    # a line: the spots stray across it by less than a LINE_SPREAD of their spacing
-    spacing = float(np.median(np.diff(along))) if len(samples) > 1 else 0.0
-    if len(samples) < 3 or singular[1] / np.sqrt(len(samples)) <= LINE_SPREAD * spacing:
-        coords = (centred @ axes[0])[:, None]
+    axis = spot_line(samples) if len(samples) >= 3 else \
+        (np.linalg.svd(centred, full_matrices=False)[2][0] if len(samples) > 1 else np.array([1.0, 0.0]))
+    if axis is not None:                          # a line (ilt.isf.folds.LINE_SPREAD)
+        coords = (centred @ axis)[:, None]
         order = np.argsort(coords[:, 0], kind="stable")
         pairs, dimension = np.stack([order[:-1], order[1:]], axis=1), 1
     else:

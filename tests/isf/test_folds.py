@@ -146,8 +146,10 @@ def test_a_long_barrier_is_carried_on_along_its_valleys_floor_and_a_branch_is_no
 def test_build_isf_fold_cells_only_move_pixels_noise_free_or_noisy(tmp_path):
     """Noise-free frames: judged against the nominal noise, their discs tapered, the manifest
     says so. Noisy frames: their own noise. Either way the same lit pixels as without the
-    option, the moved ones counted, and the pixels the noise-free frames move lie at the
-    two concave folds the noisy frames' cells end at (columns 104 and 296 of 401)."""
+    option, the moved ones counted, the strip cut in three by its two concave folds, and the
+    pixels the noise-free frames move (none: their far light the same in every row, the
+    barriers run straight down the folds midway between spots, where the cells end already)
+    lie at the folds the noisy frames' cells end at (columns 104 and 296 of 401)."""
     from ilt.io.exr import read_exr
     from ilt.isf.build import build_isf
     from tests.isf.test_build import run
@@ -173,11 +175,13 @@ def test_build_isf_fold_cells_only_move_pixels_noise_free_or_noisy(tmp_path):
         plain = json.loads((tmp_path / f"isf-{name}-plain" / "manifest.json").read_text())
         assert plain["parameters"]["fold_cells"] is False and "folds" not in plain
         if name == "clean":
-            assert manifest["folds"]["far_light"] == "sum.exr less each frame's disc, tapered from 1 to 2 spacings"
+            assert manifest["folds"]["far_light"] == "sum.exr less each frame's stripe across the spots' line, tapered from 1 to 2 spacings"
             assert manifest["folds"]["noise"].startswith("nominal")
         else:
-            assert manifest["folds"]["far_light"] == "sum.exr less each frame's disc" and "noise" not in manifest["folds"]
-    assert moved["noisy"] and moved["clean"]
+            assert manifest["folds"]["far_light"] == "sum.exr less each frame's stripe across the spots' line" and "noise" not in manifest["folds"]
+        # the M's two concave folds cross its strip: three regions of the lit pixels
+        assert manifest["folds"]["regions"] == 3
+    assert moved["noisy"]
     assert all(min(abs(c - n) for n in moved["noisy"]) <= 2 for c in moved["clean"])
 
 
@@ -336,3 +340,59 @@ def test_the_far_light_from_the_scans_sum_is_the_far_pass(tmp_path):
     firefly[20, 30] += 400.0
     around = np.delete(brute[19:22, 29:32].ravel(), 4)
     assert far_from_sum(firefly, near, NOISE, 7)[20, 30] == pytest.approx(np.median(around))
+
+
+def test_spot_line_is_the_spots_line_and_none_for_a_grid():
+    from ilt.isf.folds import spot_line
+
+    rng = np.random.default_rng(2)
+    t = np.arange(20) * 12.0
+    angle = np.deg2rad(8.0)
+    line = np.column_stack([5 + t * np.cos(angle), 15 + t * np.sin(angle)]) + rng.normal(0, 0.5, (20, 2))
+    axis = spot_line(line)
+    assert axis is not None and abs(abs(float(axis @ [np.cos(angle), np.sin(angle)])) - 1) < 1e-3
+    grid = np.stack(np.meshgrid(np.arange(6) * 12.0, np.arange(4) * 12.0), axis=-1).reshape(-1, 2)
+    assert spot_line(grid) is None and spot_line(line[:2]) is None
+
+
+@pytest.mark.parametrize("degrees", [0.0, 20.0, 60.0, 90.0])
+def test_far_counts_across_a_line_of_spots_leave_out_a_stripe(degrees):
+    """Spots on a line: a frame counts where its spot is farther than a spacing along the
+    line, at any distance across it (the stripe's window, clipped to the frame, as brute)."""
+    from ilt.isf.folds import far_counts
+
+    u = np.array([np.cos(np.deg2rad(degrees)), np.sin(np.deg2rad(degrees))])
+    centroids = np.array([40.0, 30.0]) + np.arange(-6, 9)[:, None] * 9.0 * u      # some off the frame
+    rows, cols = np.ogrid[:70, :90]
+    brute = sum((np.abs((cols - x) * u[0] + (rows - y) * u[1]) > 11.5).astype(float) for x, y in centroids)
+    np.testing.assert_array_equal(far_counts(centroids, (70, 90), 11.5, u), brute)
+
+
+def test_a_line_of_spots_far_light_is_the_same_across_its_strip(tmp_path):
+    """A flatland scan (frames the same along the strip, spots on its middle row): the far
+    light, from the frames or from their sum, leaves out each frame's stripe within a spacing
+    of its spot, so it is the same in every row, the rows a disc does not reach too. With
+    discs it is not: there the near spots' own light is left in, and a fold's valley beside a
+    spot hidden (docs/fullres.md, "A flatland spot's stripe")."""
+    from ilt.io.exr import write_exr
+    from ilt.isf.folds import far_chunk, far_from_sum, near_chunk, spot_line
+
+    shape, spacing = (32, 130), 12.0
+    x = np.arange(shape[1], dtype=np.float64)
+    centres = np.column_stack([7.0 + 12.0 * np.arange(10), np.full(10, 15.5)])
+    files, frames = [], []
+    for k, (cx, _) in enumerate(centres):
+        profile = 80.0 * np.exp(-((x - cx) ** 2) / 2.0) + 5.0 * (1.0 + 0.01 * x) * (0.4 + np.minimum(np.abs(x - 60.0), 8) / 13)
+        frame = np.repeat(profile[None, :], shape[0], axis=0)
+        frames.append(frame)
+        files.append(write_exr(tmp_path / f"beam-{k:05d}.exr", frame))
+    along = spot_line(centres)
+    far = far_chunk(files, shape, centres, spacing, along=along)
+    stored = [f.astype(np.float32).astype(np.float64) for f in frames]
+    brute = sum(np.where(np.abs(x - cx) > spacing, f[0], 0.0) for f, (cx, _) in zip(stored, centres))
+    np.testing.assert_allclose(far, np.repeat(brute[None, :], shape[0], axis=0), rtol=1e-12, atol=1e-9)
+    total = np.sum(stored, axis=0)
+    near = near_chunk(files, shape, centres, spacing, along=along)
+    np.testing.assert_allclose(far_from_sum(total, near, None, len(files)), far, rtol=1e-9, atol=1e-9)
+    discs = far_chunk(files, shape, centres, spacing)
+    assert np.ptp(discs, axis=0).max() > 50.0            # the strip's top and bottom rows: spots' light

@@ -124,9 +124,9 @@ def neighbour_edges(samples: np.ndarray) -> Edges:
 
     samples = np.asarray(samples, dtype=np.float64)
     centred = samples - samples.mean(axis=0)
-    axis = spot_line(samples) if len(samples) >= 3 else \
-        (np.linalg.svd(centred, full_matrices=False)[2][0] if len(samples) > 1 else np.array([1.0, 0.0]))
-    if axis is not None:                          # a line (ilt.isf.folds.LINE_SPREAD)
+    # a line (ilt.isf.folds.LINE_SPREAD); one or two spots are one, along their own axis
+    axis = spot_line(samples) if len(samples) >= 3 else np.linalg.svd(centred, full_matrices=False)[2][0]
+    if axis is not None:
         coords = (centred @ axis)[:, None]
         order = np.argsort(coords[:, 0], kind="stable")
         pairs, dimension = np.stack([order[:-1], order[1:]], axis=1), 1

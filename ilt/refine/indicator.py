@@ -91,9 +91,13 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 #: rows of T read at once (a block of rows x edges float64 is about 25 MB at 12 k edges)
 ROW_BLOCK = 256
-#: a Delaunay edge longer than this many times the nearer of its ends' nearest-neighbour distances
-#: bridges a gap in the scan (the hull's slivers, void between surfaces): not a neighbour
+#: a Delaunay edge longer than this many times either end's spacing (:data:`SPACING_RANK`), or
+#: than this many times the farther of its ends' nearest-neighbour distances, bridges a gap in the
+#: scan (void between surfaces, the hull's slivers): not a neighbour (:func:`neighbour_edges`)
 MAX_EDGE_RATIO = 2.5
+#: a spot's spacing, for the edges' test: the distance to its third nearest spot (a beam beside a
+#: crease has one spot across it, at a corner where three faces meet two)
+SPACING_RANK = 3
 #: a spot within this many spacings of a fold line is in the row beside it (module doc, "Folds")
 ROW_REACH = 0.75
 #: the rows beside a fold are split in pairs before anything else until their spots are this
@@ -140,8 +144,16 @@ def neighbour_edges(samples: np.ndarray) -> Edges:
         dimension, coords = 2, samples
     length = np.linalg.norm(samples[pairs[:, 0]] - samples[pairs[:, 1]], axis=1)
     if dimension == 2:
-        nn = cKDTree(samples).query(samples, k=2)[0][:, 1]
-        keep = length <= MAX_EDGE_RATIO * np.minimum(nn[pairs[:, 0]], nn[pairs[:, 1]])
+        # an edge to a spot far from the rest is longer than the near end's spacing; a sliver along
+        # two close rows (the beams beside a crease) is longer than both ends' nearest distances.
+        # Not each end's nearest distance alone: a beam 3 px across a crease from another, with
+        # the grid 20 px off, would lose every edge to the grid, and the cells between it and
+        # the grid would never be refined (the box's 4x lattice, docs/refine.md)
+        k = min(SPACING_RANK, len(samples) - 1)
+        near = cKDTree(samples).query(samples, k=k + 1)[0]
+        spacing, nn = near[:, k], near[:, 1]
+        keep = ((length <= MAX_EDGE_RATIO * np.minimum(spacing[pairs[:, 0]], spacing[pairs[:, 1]]))
+                & (length <= MAX_EDGE_RATIO * np.maximum(nn[pairs[:, 0]], nn[pairs[:, 1]])))
         pairs, length = pairs[keep], length[keep]
     return Edges(pairs, length, dimension, coords)
 
@@ -312,6 +324,17 @@ class FoldRows:
     depth: tuple
     stations: list
 
+    def crosses(self, samples: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+        """(E,) bool: the edges ``pairs`` of spots ``samples`` whose ends lie on the two sides of
+        the fold, crossing it between its first and last stations (half a gap beyond)."""
+        rel = samples - self.start
+        d, t = rel @ self.normal, rel @ self.along
+        da, db = d[pairs[:, 0]], d[pairs[:, 1]]
+        across = da * db < 0
+        at = t[pairs[:, 0]] + (t[pairs[:, 1]] - t[pairs[:, 0]]) * da / np.where(across, da - db, 1.0)
+        reach = 0.5 * (float(np.median(np.diff(self.stations))) if len(self.stations) > 1 else 0.0)
+        return across & (at >= self.stations[0] - reach) & (at <= self.stations[-1] + reach)
+
     def pair(self, t: float) -> list[np.ndarray]:
         """The two targets at ``t`` along the fold, one each side at its row's distance."""
         foot = self.start + t * self.along
@@ -394,13 +417,13 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
     if rows:        # each spot's change: the mean share of its edges (a fold gap's share)
         spot_change = (np.bincount(edges.pairs.ravel(), weights=np.repeat(score, 2), minlength=len(samples))
                        / np.maximum(np.bincount(edges.pairs.ravel(), minlength=len(samples)), 1))
-    # the edges within a fold's rows (along it, and across it from row to row) are split by
-    # the fold's pairs, not in thirds
+    # the edges within a fold's rows (along it, and across it from row to row), and any edge
+    # across the fold (a row's spot to the far side's next row), are split by the fold's pairs
     in_rows = np.zeros(len(edges.pairs), bool)
     for row in rows:
         member = np.zeros(len(samples), bool)
         member[list(row.side)] = True
-        in_rows |= member[edges.pairs[:, 0]] & member[edges.pairs[:, 1]]
+        in_rows |= (member[edges.pairs[:, 0]] & member[edges.pairs[:, 1]]) | row.crosses(samples, edges.pairs)
     points = list(samples)                        # the spots, then the targets as they are placed
     # a heap on (class: fold gaps first, -gain of the entry's two beams, tie-break, kind, entry)
     tie = itertools.count()                       # unique: the entries themselves are never compared

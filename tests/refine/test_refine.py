@@ -56,6 +56,24 @@ def test_a_grid_of_spots_is_its_triangulation_without_bridges():
     assert len(pairs) == 4 * 4 + 3 * 5 + 12
 
 
+
+def test_beams_beside_a_crease_keep_their_edges_to_the_grid_and_no_sliver_along_it():
+    # two faces of 4 x 5 spots 20 px apart meeting at a crease at x = 70, the last column of each
+    # 1.5 px from it (the box's 4x lattice): 3 px across the crease, 18.5 px from their own grid
+    xs = [10.0, 30.0, 50.0, 68.5, 71.5, 90.0, 110.0, 130.0]
+    yy, xx = np.meshgrid(np.arange(5) * 20.0, xs, indexing="ij")
+    samples = np.column_stack([xx.ravel(), yy.ravel()])
+    edges = neighbour_edges(samples)
+    pairs = set(map(tuple, np.sort(edges.pairs, axis=1)))
+    column = np.round(samples[:, 0]).astype(int)
+    for r in range(5):
+        a, b = 8 * r + 3, 8 * r + 4                        # the crease's two spots in row r
+        assert (a, b) in pairs
+        assert (8 * r + 2, a) in pairs and (b, 8 * r + 5) in pairs      # each to its own face
+    # along the crease: no edge skips a spot (a sliver between its two close rows)
+    along = [(i, k) for i, k in pairs if column[i] in (68, 72) and column[k] in (68, 72)]
+    assert along and all(abs(samples[i, 1] - samples[k, 1]) <= 20.0 + 1e-9 for i, k in along)
+
 def test_the_residual_is_zero_where_columns_vary_linearly_ends_included():
     m = 9
     samples = _line_samples(m)
@@ -175,6 +193,14 @@ def test_the_rows_beside_a_fold_are_the_spots_next_to_it_on_each_side():
     assert rows[0].stations == pytest.approx([0, 10, 20, 30, 40, 50, 60, 70])
     assert fold_rows(samples[samples[:, 0] < 25], folds, 10.0) == []         # one side only: no rows
 
+
+
+def test_an_edge_crosses_a_fold_when_its_ends_are_on_its_two_sides_along_its_rows():
+    samples, _, folds = _fold_grid()
+    row = fold_rows(samples, folds, 10.0)[0]
+    far = np.vstack([samples, [[20.0, 90.0], [30.0, 90.0]]])      # past the rows' last station (70) + half a gap
+    pairs = np.array([[2, 3], [2, 10], [8, 3], [1, 2], [3, 4], [0, 5], [48, 49]])
+    assert row.crosses(far, pairs).tolist() == [True, True, True, False, False, True, False]
 
 def test_a_fold_is_split_in_pairs_across_it_before_any_edge():
     samples, T, folds = _fold_grid()

@@ -54,6 +54,16 @@ the residual by pixel length, halved, 0.0560; the residual weighted by D^2, halv
 (docs/refine.md, "A grid by what its beams light").
 The residual still shades refine.png, and a line's placement is as below.
 
+**Which Delaunay edges are neighbours.** An edge bridges a gap (void between surfaces, an
+isolated spot, the hull's slivers) when it is longer than :data:`MAX_EDGE_RATIO` times either
+end's spacing, a spot's distance to its :data:`SPACING_RANK`-th nearest; a sliver between two
+close rows of spots (the beams either side of a crease) when it is also longer than that many
+times the farther end's nearest distance. Not each end's nearest distance: on the box's 4x
+lattice (4 x 4 beams a face) the beams beside a crease stand 3 px from their partner across it
+and 19 px from their own grid; that rule cut all their edges, refine never saw the cells beside
+the creases and put its beams inside the faces, worse than random beams (+24: 0.1432 against the
+base's 0.1331); with these edges, 0.0873 (docs/refine.md, "The 4x box lattice").
+
 **Noise.** Under a sensor's noise every column's residual holds the noise of the entries
 it sums: on the noisy box (2e4 e-) a median 0.41 of the column away from its folds, 0.53 in
 the folds' rows, so the greedy went mostly by the noise. With build-isf's
@@ -71,8 +81,17 @@ gaps between their places along it are split at the middle by a **pair**: one be
 at the rows' distance from the fold. The pair's gain is half the share of the two rows' edges
 along the gap (a halved edge keeps a quarter each half); until the rows are
 :data:`FOLD_SPACING` of the spacing apart, pairs go before any edge, then by gain. The edges
-within the rows are not split in thirds. Flatland scans (a line of spots) have no rows: their
-folds are points, split in thirds as above.
+within the rows, and any edge across the fold, are the pairs' to split. Flatland scans (a line
+of spots) have no rows: their folds are points, split in thirds as above.
+
+**Rows on the fold.** On a scan whose rows stand within :data:`ROW_MIN_DEPTH` spacings of the
+fold (the box's 4x lattice: 1.2-1.8 px at a 22 px spacing, spots that light both faces) a pair
+at the rows' depth is two more beams on the crease. What such a scan lacks first is beams on
+the faces beside it, the middles of the edges across the fold; then beams along it. So there
+the pairs rank with the edges by their gain, and the edges across the fold are split as any.
+On the 4x box (2e4 e-, the one draw of three whose build found two fold lines at 48 beams):
+pairs first, +24 0.1283 (random 0.1190); by gain, 0.0881; +48 0.0791 -> 0.0778; no pairs at
+all, 0.0859 / 0.0872 (docs/refine.md, "The 4x box lattice").
 
 Costs: one pass over T's rows in blocks, a sparse product of O(m x edges) (about 3 m
 edges in 2D) and on a grid the edges' dot products in the same pass, so the decision at
@@ -100,6 +119,10 @@ MAX_EDGE_RATIO = 2.5
 SPACING_RANK = 3
 #: a spot within this many spacings of a fold line is in the row beside it (module doc, "Folds")
 ROW_REACH = 0.75
+#: a fold whose row on either side stands closer to it than this many spacings has its beams on it
+#: (a spot a few pixels from a crease lights both faces): its pairs rank with the edges, and the
+#: edges across it are split as any (module doc, "Folds")
+ROW_MIN_DEPTH = 0.125
 #: the rows beside a fold are split in pairs before anything else until their spots are this
 #: many of the scan's spacings apart along it (module doc, "Folds")
 FOLD_SPACING = 0.5
@@ -314,7 +337,8 @@ class FoldRows:
     ``side`` {spot row of T: +1 / -1}; ``place`` {spot row: its position along the fold};
     ``depth`` (2,) the rows' median distance from the fold (+ side, - side); ``stations`` the
     sorted positions along the fold of the two rows' spots, merged where closer than a
-    quarter spacing."""
+    quarter spacing; ``on_fold``: a row stands within :data:`ROW_MIN_DEPTH` spacings of it,
+    its beams on the fold (module doc, "Folds")."""
 
     start: np.ndarray
     along: np.ndarray
@@ -323,6 +347,7 @@ class FoldRows:
     place: dict
     depth: tuple
     stations: list
+    on_fold: bool = False
 
     def crosses(self, samples: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """(E,) bool: the edges ``pairs`` of spots ``samples`` whose ends lie on the two sides of
@@ -365,10 +390,11 @@ def fold_rows(samples: np.ndarray, folds, spacing: float) -> list[FoldRows]:
                 stations[-1].append(value)
             else:
                 stations.append([value])
+        depth = (float(np.median(d[plus])), float(np.median(-d[minus])))
         side = {**{int(k): 1 for k in plus}, **{int(k): -1 for k in minus}}
-        out.append(FoldRows(start, u, normal, side, {k: float(t[k]) for k in side},
-                            (float(np.median(d[plus])), float(np.median(-d[minus]))),
-                            [float(np.mean(group)) for group in stations]))
+        out.append(FoldRows(start, u, normal, side, {k: float(t[k]) for k in side}, depth,
+                            [float(np.mean(group)) for group in stations],
+                            on_fold=min(depth) < ROW_MIN_DEPTH * spacing))
     return out
 
 
@@ -423,7 +449,9 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
     for row in rows:
         member = np.zeros(len(samples), bool)
         member[list(row.side)] = True
-        in_rows |= (member[edges.pairs[:, 0]] & member[edges.pairs[:, 1]]) | row.crosses(samples, edges.pairs)
+        in_rows |= member[edges.pairs[:, 0]] & member[edges.pairs[:, 1]]
+        if not row.on_fold:
+            in_rows |= row.crosses(samples, edges.pairs)
     points = list(samples)                        # the spots, then the targets as they are placed
     # a heap on (class: fold gaps first, -gain of the entry's two beams, tie-break, kind, entry)
     tie = itertools.count()                       # unique: the entries themselves are never compared
@@ -436,7 +464,7 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
         for t0, t1 in zip(row.stations[:-1], row.stations[1:]):
             s = _gap_score(row, t0, t1, spot_change, median)
             if s > 0:
-                heap.append((_fold_class(t1 - t0, median), -s / 2, next(tie), "fold", (f, t0, t1, s)))
+                heap.append((_fold_class(t1 - t0, median, row), -s / 2, next(tie), "fold", (f, t0, t1, s)))
     heapq.heapify(heap)
     tree, targets, gains = cKDTree(samples), [], []
     remaining = float(score.sum())
@@ -484,16 +512,17 @@ def place_beams(T: np.ndarray, samples: np.ndarray, count: int, min_spacing: flo
             pairs += 1
             middle = (t0 + t1) / 2
             for u0, u1 in ((t0, middle), (middle, t1)):
-                heapq.heappush(heap, (_fold_class(u1 - u0, median), -s / 8, next(tie), "fold", (f, u0, u1, s / 4)))
+                heapq.heappush(heap, (_fold_class(u1 - u0, median, row), -s / 8, next(tie), "fold", (f, u0, u1, s / 4)))
     after = float(np.sqrt(max(remaining, 0.0) / total_weight))
     return Placement(targets=np.array(targets).reshape(-1, 2), gain=np.array(gains) / total_weight,
                      before=before, after=after, residual=residual, fold_pairs=pairs)
 
 
-def _fold_class(gap: float, spacing: float) -> int:
+def _fold_class(gap: float, spacing: float, row: FoldRows) -> int:
     """0 (before every edge) for a gap along a fold wider than :data:`FOLD_SPACING` of the
-    scan's spacing, else 1 (ranked with the edges by its gain)."""
-    return 0 if gap > FOLD_SPACING * spacing * (1 + 1e-9) else 1
+    scan's spacing, else 1 (ranked with the edges by its gain); 1 always when the fold's
+    rows are on it (``row.on_fold``)."""
+    return 0 if gap > FOLD_SPACING * spacing * (1 + 1e-9) and not row.on_fold else 1
 
 
 def _gap_score(row: FoldRows, t0: float, t1: float, spot_change, spacing: float) -> float:

@@ -192,6 +192,12 @@ def test_the_rows_beside_a_fold_are_the_spots_next_to_it_on_each_side():
     assert rows[0].depth == pytest.approx((5.0, 5.0))
     assert rows[0].stations == pytest.approx([0, 10, 20, 30, 40, 50, 60, 70])
     assert fold_rows(samples[samples[:, 0] < 25], folds, 10.0) == []         # one side only: no rows
+    assert not rows[0].on_fold
+    # rows 1 px from the fold (a tenth of the spacing) are beams on it; 2 px, beside it
+    for gap, on in ((1.0, True), (2.0, False)):
+        moved = samples.copy()
+        moved[:, 0] += np.where(samples[:, 0] < 25, 25 - gap - 20, 25 + gap - 30)
+        assert [row.on_fold for row in fold_rows(moved, folds, 10.0)] == [on]
 
 
 
@@ -217,6 +223,24 @@ def test_a_fold_is_split_in_pairs_across_it_before_any_edge():
     # without the fold's line, the same T places thirds of edges
     assert not np.allclose(place_beams(T, samples, 14).targets, placement.targets)
 
+
+
+def test_pairs_on_a_fold_rank_with_the_edges_and_beside_it_go_first():
+    # one beam far from the fold (column 0, y = 30) lights what no neighbour does: its edges change most
+    samples, T, folds = _fold_grid()
+    T = T.copy()
+    T[:, 18] = np.random.default_rng(5).permutation(T[:, 18]) ** 4
+    for gap in (1.0, 5.0):
+        moved = samples.copy()
+        moved[:, 0] += np.where(samples[:, 0] < 25, 25 - gap - 20, 25 + gap - 30)
+        placement = place_beams(T, moved, 14, folds=folds)
+        near_odd = np.hypot(*(placement.targets - moved[18]).T) < 10 * np.sqrt(2) / 2 + 1e-9
+        on_fold = np.isclose(np.abs(placement.targets[:, 0] - 25), gap)
+        if gap == 5.0:      # beside the fold (half the spacing): its 7 gaps first, a pair each
+            assert placement.fold_pairs == 7 and on_fold.all()
+        else:               # on it (a tenth): the odd beam's edges first, then pairs by their gain
+            assert near_odd[:5].all() and not on_fold[:5].any()
+            assert placement.fold_pairs >= 1 and on_fold[5:].sum() == 2 * placement.fold_pairs
 
 def test_refine_reads_the_folds_the_build_measured_from_its_manifest(tmp_path):
     from types import SimpleNamespace

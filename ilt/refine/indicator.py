@@ -75,7 +75,7 @@ every density: docs/refine.md "Folds first"): the cells next to a fold exchange 
 changes over the fold's distance, far less than the spacing along it. Beams added on one side
 of a fold only leave the cells across it unmatched and made the box *worse* (quincunx + 16 at
 folds: 0.0573 -> 0.0642); the same beams with a partner across the fold made it better
-(0.0535). So where the build measured the light across folds (its ``fold_transfer`` lines),
+(0.0535). So where the build found folds (its ``fold_transfer`` lines, their light corrected or not),
 the spots within :data:`ROW_REACH` spacings of a fold on each side are its **rows**, and the
 gaps between their places along it are split at the middle by a **pair**: one beam each side,
 at the rows' distance from the fold. The pair's gain is half the share of the two rows' edges

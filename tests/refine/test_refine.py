@@ -249,12 +249,13 @@ def test_refine_reads_the_folds_the_build_measured_from_its_manifest(tmp_path):
     from ilt.refine.stage import _folds
 
     lines = [{"from": [10.0, 2.0], "to": [10.0, 40.0], "entries": 12},
-             {"from": [1.0, 1.0], "to": [5.0, 5.0], "entries": 0}]          # no light measured: not a fold
+             {"from": [1.0, 1.0], "to": [5.0, 5.0], "entries": 0}]    # its light not corrected: a fold still
     (tmp_path / "manifest.json").write_text(json.dumps({"stage": "build-isf", "fold_transfer": {"lines": lines}}))
     isf = SimpleNamespace(mapping=PixelMapping(origin=(0.5, 0.5), scale=2.0))     # a half-resolution grid
     folds = _folds(tmp_path, isf)
-    assert len(folds) == 1
+    assert len(folds) == 2
     assert np.allclose(folds[0], [[20.5, 4.5], [20.5, 80.5]])
+    assert np.allclose(folds[1], [[2.5, 2.5], [10.5, 10.5]])
     (tmp_path / "manifest.json").write_text(json.dumps({"stage": "build-isf"}))    # built without the transfer
     assert _folds(tmp_path, isf) == []
 

@@ -25,7 +25,8 @@ larger eigenvalue of its Hessian, over its noise (the frames' noise model throug
 filters). Barriers are its ridge pixels (local maxima across the valley) above
 :data:`FOLD_LOW` sigma, connected to ones above :data:`FOLD_SIGMAS`, whose light lies
 :data:`FOLD_DEPTH` or more below the light a spot spacing either side (:func:`valley_depth`,
-the median along the line). The far light has shallow dips of its own, one a spacing, where
+the median along the line), or :data:`LONG_DEPTH` along a line :data:`LONG_DEPTH_SPACINGS`
+spacings long or more. The far light has shallow dips of its own, one a spacing, where
 each frame's disc ends: frames bright enough, or noise-free ones judged against a nominal
 noise, show them far above their noise, and on the M at 16 beams (spots 32 px apart) they
 split 8 of its 16 cells midway between spots and along the spots' row (depth 0.01-0.13,
@@ -53,6 +54,11 @@ FOLD_LOW = 3.0
 #: ... and its light lies this share below the mean of the light a spot spacing either side
 #: across it (the median along the line; :func:`valley_depth`)
 FOLD_DEPTH = 0.15
+#: ... or, along a line of ridge pixels :data:`LONG_DEPTH_SPACINGS` spot spacings long or more, this
+#: share: a fold crosses the scan, the far light's own dips are one spacing long (the box's floor
+#: creases at 48 beams of its 4x lattice: 0.148-0.155 deep along 6.5 spacings; the longest dips
+#: measured 0.093, the 16-beam M's convex fold, one spacing long, 0.13)
+LONG_DEPTH, LONG_DEPTH_SPACINGS = 0.12, 3.0
 #: the far light is the scan's sum less each frame's disc unless the frames' fireflies
 #: (:func:`ilt.isf.outliers.fresh_outliers`, times the frames summed) would be this share of
 #: its pixels: past it they stand side by side there, where the isolated test cannot tell
@@ -284,7 +290,9 @@ def valley_barriers(light: np.ndarray, count: np.ndarray, noise, lit: np.ndarray
         fine = SMOOTH_SHARE * spacing
         light_at = smooth if fine >= sigma else gaussian_filter(light, max(fine, DEPTH_SMOOTH_MIN))
         depth = valley_depth(light_at, rows, cols, theta[rows, cols], spacing)
-        low = lines[np.atleast_1d(median(depth, regions[rows, cols], lines)) < FOLD_DEPTH]
+        size = np.bincount(regions[rows, cols], minlength=regions.max() + 1)[lines]
+        need = np.where(size >= LONG_DEPTH_SPACINGS * spacing, LONG_DEPTH, FOLD_DEPTH)
+        low = lines[np.atleast_1d(median(depth, regions[rows, cols], lines)) < need]
         keep[low] = False
         shallow = int(low.size)
     if record is not None:
@@ -564,6 +572,7 @@ def _nearest_region(regions: np.ndarray, pixel: np.ndarray, reach: int) -> int:
     return int(window[rows[k], cols[k]])
 
 
-__all__ = ["DEPTH_SMOOTH_MIN", "FOLD_DEPTH", "FOLD_FLAT_PX", "FOLD_LOW", "FOLD_SIGMAS", "LINE_SPREAD", "NOMINAL_ELECTRONS",
+__all__ = ["DEPTH_SMOOTH_MIN", "FOLD_DEPTH", "FOLD_FLAT_PX", "FOLD_LOW", "FOLD_SIGMAS", "LINE_SPREAD", "LONG_DEPTH",
+           "LONG_DEPTH_SPACINGS", "NOMINAL_ELECTRONS",
            "SUM_OUTLIER_SHARE", "cells_at_barriers", "far_chunk", "far_counts", "far_from_sum", "fold_cells",
            "near_chunk", "nominal_noise", "spacing_of", "spot_line", "sum_noise", "valley_barriers", "valley_depth"]

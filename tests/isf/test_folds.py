@@ -250,6 +250,7 @@ def test_the_lattices_own_dimples_are_no_fold_but_a_deep_valley_is(monkeypatch):
     assert not valley_barriers(light, count, noise, lit, 16.0, record).any()
     assert record["shallow_lines"] >= 1
     monkeypatch.setattr(folds, "FOLD_DEPTH", -np.inf)               # the noise test alone
+    monkeypatch.setattr(folds, "LONG_DEPTH", -np.inf)
     stray = valley_barriers(light, count, noise, lit, 16.0)
     assert fold_cells(labels, centroids, stray, 16.0)[1]["moved_pixels"] > 100
     monkeypatch.undo()
@@ -396,3 +397,28 @@ def test_a_line_of_spots_far_light_is_the_same_across_its_strip(tmp_path):
     np.testing.assert_allclose(far_from_sum(total, near, None, len(files)), far, rtol=1e-9, atol=1e-9)
     discs = far_chunk(files, shape, centres, spacing)
     assert np.ptp(discs, axis=0).max() > 50.0            # the strip's top and bottom rows: spots' light
+
+
+def test_a_shallow_valley_is_a_fold_where_it_crosses_three_spacings_or_more():
+    """A valley 0.12-0.15 deep (ilt.isf.folds.LONG_DEPTH, FOLD_DEPTH): along 6 spacings it is a
+    fold (the box's floor creases at 48 beams of its 4x lattice are 0.148-0.155 deep along 6.5);
+    the same dip along 2 spacings, and a long dip 0.11 deep, are not."""
+    from ilt.isf.folds import FOLD_DEPTH, LONG_DEPTH
+
+    shape = (96, 200)
+    y, x = np.mgrid[:shape[0], :shape[1]].astype(np.float64)
+    count, lit, noise = np.full(shape, 12.0), np.ones(shape, bool), nominal_noise(1e5)
+    found = {}
+    for name, dip, rows in (("long", 0.22, (0, 96)), ("short", 0.25, (30, 62)), ("long, shallower", 0.19, (0, 96))):
+        v = np.where((y >= rows[0]) & (y < rows[1]), dip * np.exp(-(x - 101.0) ** 2 / (2 * 3.0**2)), 0.0)
+        light = 3000.0 * (1 + x / 400.0) * (1 - v)
+        barriers = valley_barriers(light, count, noise, lit, 16.0)
+        along = barriers[:, 99:104].any(axis=1)
+        found[name] = int(along.sum())
+        # the dip's own depth, as the test reads it (a quarter spacing's smoothing), in the band
+        if name != "long, shallower":
+            from scipy.ndimage import gaussian_filter
+            middle = (rows[0] + rows[1]) // 2
+            depth = valley_depth(gaussian_filter(light, 4.0), np.array([middle]), np.array([101]), np.array([0.0]), 16.0)
+            assert LONG_DEPTH <= depth[0] < FOLD_DEPTH
+    assert found == {"long": 96, "short": 0, "long, shallower": 0}

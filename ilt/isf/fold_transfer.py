@@ -87,7 +87,8 @@ CAP = 4.0
 #: light reaches into a fold), is as far from the even spread as that is from the spot (on the
 #: M at 16 beams, spots 10.5 and 13.5 px from a fold, corrections of +11% and -4% doubled its
 #: room photo's bounce 2 at the samples, 0.018 -> 0.040; 1.5 gave the noisy M's 96 beams 0.0585
-#: against 0.0514 at 1.2)
+#: against 0.0514 at 1.2; a share faded in from 1.1, or up to 1.3, instead of the threshold:
+#: up to 10% and 3% worse on the noisy sweeps, docs/fullres.md "A correction faded in")
 MIN_RATIO = 1.2
 #: how far (px) the fold's place is uncertain: the far light's floor on noisy frames, against the
 #: M's exact folds (:func:`cross_fold_corrections`)

@@ -34,7 +34,12 @@ the folds 0.68-0.74; the M's folds at 48-384 beams 0.37-0.82). :func:`fold_cells
 gives each pixel to the nearest spot in its own region of the lit mask that the barriers
 leave (4-connected), except each spot's own disc, which stays its own (a barrier between
 a spot 2 px from a fold and its own pixels gave them to the neighbour); a spot on a barrier
-pixel is in the region of the nearest pixel that is not one.
+pixel is in the region of the nearest pixel that is not one. A region that holds spots in
+less than half the cells' median size (:data:`POCKET_CELLS`) is a pocket, no face: at a
+crease's end, where two close spots' discs leave a dip in the far light all about them, its
+barriers closed a ring about them and gave their cells' pixels outside it to spots 1.5-2
+spacings away (the box's 4x lattice, a 72-beam scan 0.0945 -> 0.0900). A pocket's spots keep
+their cells.
 
 A fold's valley fades towards the light's edge, where fewer far beams light it, so its
 barrier may stop short of that edge and enclose nothing. So each barrier that spans
@@ -368,6 +373,12 @@ def _follow(barriers: np.ndarray, floor: np.ndarray, z: np.ndarray, extent: floa
                     break                                      # it met another barrier
 
 
+#: a region holding spots in less than this share of the cells' median size is a pocket of the
+#: barriers about close spots, not a face (:func:`fold_cells`): at the box's crease ends, two
+#: spots 3 px apart in 48 px, the cells about 190 px
+POCKET_CELLS = 0.5
+
+
 def _weight(sigma: float) -> float:
     """The sum of squares of the filters' weights (Gaussian, then the second difference):
     a white noise's variance in the valley-ness, per unit of a pixel's."""
@@ -396,11 +407,22 @@ def fold_cells(labels: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, 
         # (region 0 gave its cell to its neighbours, bar its disc)
         spot_region[i] = _nearest_region(regions, spot[i], int(np.ceil(disc)))
     flat_regions, flat_labels = regions.ravel(), labels.ravel()
+    # a region that holds spots in less than POCKET_CELLS of the cells' median size is a pocket
+    # of the barriers about close spots, no face the scan sees: its spots keep their cells as
+    # they were, and its pixels theirs
+    area = np.bincount(flat_regions, minlength=count + 1)
+    spots_in = np.bincount(spot_region, minlength=count + 1)
+    sizes = np.bincount(flat_labels[flat_labels >= 0], minlength=len(centroids))
+    cell = float(np.median(sizes[sizes > 0])) if np.any(sizes > 0) else 0.0
+    small = (spots_in > 0) & (area < POCKET_CELLS * cell)
+    small[0] = False
+    pocket_spot = small[spot_region]
+    keep = (pocket_spot[np.maximum(flat_labels, 0)] & (flat_labels >= 0)) | small[flat_regions]
     out = flat_labels.copy()
     # a pixel whose cell's spot (its nearest) is in its region keeps it: that spot is its
     # nearest there too. The others, but for each spot's own disc, go to the nearest spot
     # of their region (if it has one)
-    moving = np.flatnonzero((flat_regions > 0) & lit.ravel())
+    moving = np.flatnonzero((flat_regions > 0) & lit.ravel() & ~keep)
     moving = moving[spot_region[flat_labels[moving]] != flat_regions[moving]]
     if moving.size:
         near, _ = cKDTree(centroids).query(np.column_stack([moving % width, moving // width]),
@@ -414,9 +436,10 @@ def fold_cells(labels: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, 
             _, nearest = cKDTree(centroids[mine]).query(np.column_stack([pixels % width, pixels // width]))
             out[pixels] = mine[nearest]
     out = out.reshape(labels.shape)
-    blocked = _line_of_sight(out, centroids, barriers, regions, spot_region, disc, spacing)
+    blocked = _line_of_sight(out, centroids, barriers, regions, spot_region, disc, spacing,
+                             keep=keep.reshape(labels.shape))
     return out, {"barrier_pixels": int(barriers.sum()), "moved_pixels": int(np.count_nonzero(out != labels)),
-                 "regions": int(count), "blocked_pixels": blocked}
+                 "regions": int(count), "blocked_pixels": blocked, "pocket_spots": int(pocket_spot.sum())}
 
 
 #: a cell with a pixel this close (px, chessboard) to a barrier keeps no plane of its own
@@ -499,14 +522,16 @@ def _lines(barriers: np.ndarray, extent: float):
 
 
 def _line_of_sight(out: np.ndarray, centroids: np.ndarray, barriers: np.ndarray, regions: np.ndarray,
-                   spot_region: np.ndarray, disc: float, spacing: float, candidates: int = 8) -> int:
+                   spot_region: np.ndarray, disc: float, spacing: float, candidates: int = 8,
+                   keep: np.ndarray | None = None) -> int:
     """A barrier that ends short of the light's edge encloses nothing, and the regions leave
     the cells about it as they were; so each lit pixel whose straight line to its cell's spot
     crosses a barrier goes (in place, in ``out``) to the nearest of its ``candidates``
     nearest spots within a ``spacing`` of it and in its own region that it sees (no barrier
     between), if any (a barrier's short branch into a cell, noise's, would otherwise give
     its far side to spots two cells away), but for the spots' own discs and the barrier
-    pixels themselves. Returns how many pixels were blocked."""
+    pixels themselves and the ``keep`` pixels (a pocket's, :func:`fold_cells`). Returns how many
+    pixels were blocked."""
     from scipy.ndimage import distance_transform_cdt
     from scipy.spatial import cKDTree
 
@@ -526,7 +551,8 @@ def _line_of_sight(out: np.ndarray, centroids: np.ndarray, barriers: np.ndarray,
         y, x = np.nonzero(rows >= 0)
         if y.size:
             reach = max(reach, float(np.hypot(*(centroids[rows[y, x]] - np.column_stack([x, y + r0])).T).max()))
-    lit = np.flatnonzero(((out >= 0) & ~(wall | barriers) & (to_wall <= reach)).ravel())
+    free = (out >= 0) & ~(wall | barriers) & (to_wall <= reach)
+    lit = np.flatnonzero((free if keep is None else free & ~keep).ravel())
     if lit.size == 0:
         return 0
     xy = np.column_stack([lit % width, lit // width]).astype(np.float64)

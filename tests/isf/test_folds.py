@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from ilt.isf.folds import fold_cells, nominal_noise, valley_barriers, valley_depth
+from ilt.isf.folds import SMOOTH_SHARE, fold_cells, nominal_noise, valley_barriers, valley_depth
 from ilt.isf.noise import FrameNoise
 
 GAIN = 4.0
@@ -83,6 +83,35 @@ def test_a_spot_on_a_barrier_keeps_its_cell_on_its_side():
     past = (labels == 0) & (cols > 26)
     assert past.sum() == 2 * 32 and np.all(out[past] == 1)
     assert np.all(out[labels == 2] == 2)
+
+def test_a_pocket_of_barriers_about_close_spots_is_no_face():
+    """A fold at x = 40 on a 12 px grid, and a ring of barrier pixels (the far light's dip at
+    a crease's end, where two close spots' discs are left out of it) about two spots 3 px
+    apart, enclosing 5 x 10 px, a third of the grid's cells (144 px). The ring's spots keep
+    their Voronoi cells (before, every pixel of theirs outside the ring went to spots 1.5-2
+    spacings away) and the pixels inside it theirs; the fold still moves the others."""
+    from ilt.isf.cells import voronoi_cells
+
+    xs, ys = np.arange(6.0, 96.0, 12.0), np.arange(6.0, 72.0, 12.0)
+    grid = np.array([[x, y] for y in ys for x in xs if not (60 < x < 90 and 24 < y < 48)])
+    centroids = np.vstack([grid, [[74.0, 36.0], [77.0, 36.0]]])
+    labels = voronoi_cells(centroids, (72, 96))
+    barriers = np.zeros((72, 96), bool)
+    barriers[:, 33] = True                                   # the fold, 3 px right of a column of spots
+    barriers[30:42, 73] = barriers[30:42, 79] = True        # the ring: x 74-78, y 31-40 inside
+    barriers[30, 73:80] = barriers[41, 73:80] = True
+    out, record = fold_cells(labels, centroids, barriers, spacing=12.0)
+    ring = [len(grid), len(grid) + 1]
+    assert record["pocket_spots"] == 2
+    assert np.all(out[np.isin(labels, ring)] == labels[np.isin(labels, ring)])
+    rows, cols = np.mgrid[:72, :96]
+    inside = (cols > 73) & (cols < 79) & (rows > 30) & (rows < 41)
+    assert np.all(out[inside] == labels[inside])
+    # the fold: the x = 30 column's pixels past it (but its spots' discs) go to the x = 42 column
+    disc = np.hypot(cols - centroids[labels, 0], rows - centroids[labels, 1]) <= max(3.0, SMOOTH_SHARE * 12.0)
+    past = (labels >= 0) & (cols > 33) & (centroids[labels, 0] == 30.0) & ~disc
+    assert past.sum() >= 72 and np.all(centroids[out[past], 0] == 42.0)
+
 
 def test_a_barrier_short_of_the_lights_edge_ends_the_cells_whose_lines_cross_it():
     """A fold at x = 52 seen over rows 55-104 of 160 (the valley fades before the light
@@ -251,6 +280,7 @@ def test_the_lattices_own_dimples_are_no_fold_but_a_deep_valley_is(monkeypatch):
     assert record["shallow_lines"] >= 1
     monkeypatch.setattr(folds, "FOLD_DEPTH", -np.inf)               # the noise test alone
     monkeypatch.setattr(folds, "LONG_DEPTH", -np.inf)
+    monkeypatch.setattr(folds, "POCKET_CELLS", 0.0)                 # and no region taken as a pocket
     stray = valley_barriers(light, count, noise, lit, 16.0)
     assert fold_cells(labels, centroids, stray, 16.0)[1]["moved_pixels"] > 100
     monkeypatch.undo()

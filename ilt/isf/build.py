@@ -786,8 +786,8 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     None when not applied), and the barrier mask, the far light and the spot spacing that
     :mod:`ilt.isf.fold_transfer` reads the folds from (None when not applied)."""
     from ilt.isf.folds import FOLD_DEPTH, FOLD_LOW, FOLD_SIGMAS, LONG_DEPTH, LONG_DEPTH_SPACINGS, NOMINAL_ELECTRONS, \
-        cells_at_barriers, far_chunk, far_counts, far_from_sum, fold_cells, near_chunk, nominal_noise, spot_line, \
-        valley_barriers
+        POCKET_CELLS, cells_at_barriers, far_chunk, far_counts, far_from_sum, fold_cells, near_chunk, nominal_noise, \
+        spot_line, valley_barriers
 
     judge = noise
     if noise is None:
@@ -836,6 +836,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
         source += ", tapered from 1 to 2 spacings"
     return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW,
                     "depth": FOLD_DEPTH, "long_depth": {"depth": LONG_DEPTH, "spacings": LONG_DEPTH_SPACINGS},
+                    "pocket_cells": POCKET_CELLS,
                     **valleys, "far_light": source, **record, "flat_cells": int(at_folds.size),
                     **({} if noise is not None else {"noise": f"nominal: noise-free frames judged as with photon "
                                                               f"noise of {NOMINAL_ELECTRONS:g} e- at their "

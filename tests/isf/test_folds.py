@@ -84,8 +84,9 @@ def test_a_spot_on_a_barrier_keeps_its_cell_on_its_side():
     assert past.sum() == 2 * 32 and np.all(out[past] == 1)
     assert np.all(out[labels == 2] == 2)
 
+
 def test_a_pocket_of_barriers_about_close_spots_is_no_face():
-    """A fold at x = 40 on a 12 px grid, and a ring of barrier pixels (the far light's dip at
+    """A fold at x = 33 on a 12 px grid, and a ring of barrier pixels (the far light's dip at
     a crease's end, where two close spots' discs are left out of it) about two spots 3 px
     apart, enclosing 5 x 10 px, a third of the grid's cells (144 px). The ring's spots keep
     their Voronoi cells (before, every pixel of theirs outside the ring went to spots 1.5-2

@@ -36,7 +36,7 @@ leave (4-connected), except each spot's own disc, which stays its own (a barrier
 a spot 2 px from a fold and its own pixels gave them to the neighbour); a spot on a barrier
 pixel is in the region of the nearest pixel that is not one. A region that holds spots in
 less than half the cells' median size (:data:`POCKET_CELLS`) is a pocket, no face: at a
-crease's end, where two close spots' discs leave a dip in the far light all about them, its
+crease's end, where the far light dips all about two close spots, its
 barriers closed a ring about them and gave their cells' pixels outside it to spots 1.5-2
 spacings away (the box's 4x lattice, a 72-beam scan 0.0945 -> 0.0900). A pocket's spots keep
 their cells.
@@ -375,7 +375,7 @@ def _follow(barriers: np.ndarray, floor: np.ndarray, z: np.ndarray, extent: floa
 
 #: a region holding spots in less than this share of the cells' median size is a pocket of the
 #: barriers about close spots, not a face (:func:`fold_cells`): at the box's crease ends, two
-#: spots 3 px apart in 48 px, the cells about 190 px
+#: spots 3 px apart in 48 px, the cells' median 158 px
 POCKET_CELLS = 0.5
 
 

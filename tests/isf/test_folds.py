@@ -86,9 +86,8 @@ def test_a_spot_on_a_barrier_keeps_its_cell_on_its_side():
 
 
 def test_a_pocket_of_barriers_about_close_spots_is_no_face():
-    """A fold at x = 33 on a 12 px grid, and a ring of barrier pixels (the far light's dip at
-    a crease's end, where two close spots' discs are left out of it) about two spots 3 px
-    apart, enclosing 5 x 10 px, a third of the grid's cells (144 px). The ring's spots keep
+    """A fold at x = 33 on a 12 px grid, and a ring of barrier pixels (as the far light's dip
+    about two close spots at a crease's end made one) about two spots 3 px apart, enclosing 5 x 10 px, a third of the grid's cells (144 px). The ring's spots keep
     their Voronoi cells (before, every pixel of theirs outside the ring went to spots 1.5-2
     spacings away) and the pixels inside it theirs; the fold still moves the others."""
     from ilt.isf.cells import voronoi_cells

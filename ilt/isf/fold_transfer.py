@@ -72,9 +72,14 @@ MAX_SCALE = 8.0
 #: scaling's factor grows as 1 / distance there, its square with it, and the fold's place is
 #: known to a quarter pixel and a pixel's light spread over one, so a pixel half a pixel from
 #: the fold came out 3-4 times the renderer's light (a box of 48 beams with its surface in
-#: patches of 1.25 px); 1.5 px: that box within 2% of the build without the transfer, where
-#: it was 7% worse, the 2x lattice's scans 0.4-9% better (2 px: its 432 beams 3% worse)
-NEAR_PX = 1.5
+#: patches of 1.25 px, before the symmetric read and the factor MIN_RATIO). 0.75 px since:
+#: at 1.5 px a cell whose spot stands 1.2-1.8 px from a crease read as lying wholly beyond its
+#: spot, its pixels nearer the fold, which send the most to the cell straight across, sending
+#: what the spot does; the 4x box lattice's 192 beams (cells 9 px across) were 23% worse than
+#: with no transfer, the pixels within 2 px of a crease 4-12% short of their bounces 2-3
+#: (noise-free). At 0.75 px every scan of that lattice gains 2-17% noise-free, the noisy sweep's
+#: box within 0.4% (docs/fullres.md "Near the crease")
+NEAR_PX = 0.75
 #: the light along the fold, 1.5-2.5 spot distances from the spot's foot against within half
 #: of one: above this share the frames are flatland (constant along the fold)
 FLATLAND_SHARE = 0.6

@@ -247,3 +247,24 @@ def test_corrections_carry_through_the_further_bounces():
     delta[rows, cols] = values
     expected = T + T @ np.diag(1 / np.diag(T)) @ delta
     assert np.allclose(ft.apply_corrections(T.copy(), rows, cols, values), expected)
+
+
+def test_a_cell_whose_spot_hugs_the_fold_keeps_its_nearer_pixels():
+    """A dense scan's crease cell: its spot 1.5 px from a 3D fold, its pixels 0.5-5.5 px from
+    it. Against the kernel's exact double integral over the pixels where they are (no
+    distance taken up to any floor), the ratio to the cell straight across is within 11% and to
+    the cell beyond it within 5% (0.63 against 0.70, 1.36 against 1.32). With every pixel
+    nearer the fold than 1.5 px taken at 1.5 px, as before, the cell read as lying beyond its
+    spot: 0.60 and 1.43, 15% and 9% off."""
+    fold = 100.5
+    labels, spot, frame, line = solid_fold((128, 201), fold, (58, 70), (95, 101), (101, 107), 1.5)
+    labels[58:70, 85:95] = 2
+    cells = ft._cell_pixels(labels, 3)
+    found = ft.cross_fold_corrections(line, cells, np.array([[92.0, 63.5], spot, [88.0, 63.5]]), spacing=6.0,
+                                      frame_of=lambda k: frame, flatland=False, placement=0.0, min_ratio=1.0)
+    ey, ex = np.nonzero(labels == 1)
+    for i, rel in ((0, 0.11), (2, 0.05)):
+        ry, rx = np.nonzero(labels == i)
+        point = solid(fold - rx, spot[0] - fold, ry - spot[1]).sum()
+        exact = np.mean([solid(fold - rx, b, ry - v).sum() for b, v in zip(ex - fold, ey)]) / point
+        assert 1.0 + found[(i, 1)] / point == pytest.approx(exact, rel=rel)

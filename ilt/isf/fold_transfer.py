@@ -77,7 +77,7 @@ MAX_SCALE = 8.0
 #: spot, its pixels nearer the fold, which send the most to the cell straight across, sending
 #: what the spot does; the 4x box lattice's 192 beams (cells 9 px across) were 23% worse than
 #: with no transfer, the pixels within 2 px of a crease 4-12% short of their bounces 2-3
-#: (noise-free). At 0.75 px every scan of that lattice gains 2-17% noise-free, the noisy sweep's
+#: (noise-free). At 0.75 px every scan of that lattice gains 1.7-17% noise-free, the noisy sweep's
 #: box within 0.4% (docs/fullres.md "Near the crease")
 NEAR_PX = 0.75
 #: the light along the fold, 1.5-2.5 spot distances from the spot's foot against within half

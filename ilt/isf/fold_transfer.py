@@ -64,16 +64,21 @@ MIN_STRETCHES = 4
 EMITTER_SPACINGS = 3.0
 #: a cell touches a fold when a pixel of it lies within this many px of the line ...
 TOUCH_PX = 2.0
-#: ... and at least this share of its pixels lie on one side. 0.6 since: a dense scan's spot
-#: 1.4 px from a crease keeps its own disc of 3 px (:func:`ilt.isf.folds.fold_cells`), a pixel or
-#: two over the crease, and where the spots across stand offset along it (an uneven scan: the 4x
-#: box lattice's 363, 507 and 675 beams) such a cell held 22-28% of its pixels over the line; at
-#: 0.8 it neither sent nor received a correction, its bounces 2-3 16-26% short (noise-free: 0.0479
-#: / 0.0409 / 0.0378 -> 0.0427 / 0.0371 / 0.0354; 2e4 e- 0.0618 / 0.0559 / 0.0542 -> 0.0576 /
-#: 0.0532 / 0.0525; every other scan, and the noisy sweep, the same to 0.0001; 0.5, none, 0.0376
-#: at 507; its pixels over the line left out of the correction, worse than 0.8: they lie at the
-#: crease, where the light across is strongest)
+#: ... and at least this share of its pixels lie on one side (the kernel's check,
+#: :func:`homogeneity_miss`, on :data:`CHECK_SHARE`). 0.6 since: a dense scan's spot 1.4 px from a
+#: crease keeps its own disc of 3 px (:func:`ilt.isf.folds.fold_cells`), a pixel or two over it,
+#: and where the spots across stand offset along it (an uneven scan: the 4x box lattice's 363, 507
+#: and 675 beams) such a cell held 22-28% of its pixels over the line; at 0.8 it neither sent nor
+#: received a correction, its bounces 2-3 16-26% short (noise-free: 0.0479 / 0.0409 / 0.0378 ->
+#: 0.0427 / 0.0371 / 0.0354; every other scan, and the noisy sweep, the same to 0.0001; 0.5, none,
+#: 0.0376 at 507; its pixels over the line left out of the correction, worse than 0.8: they lie at
+#: the crease, where the light across is strongest)
 SIDE_SHARE = 0.6
+#: the cells the kernel's homogeneity is checked on (:func:`homogeneity_miss`) have this share of
+#: their pixels on one side: with the cells a pixel over the line the check missed by more (the 4x
+#: box lattice's 507 beams at 2e4 e-: 0.33 -> 0.49, and 0.47 -> 0.52 on another draw, over
+#: :data:`MAX_MISS`, which took every correction of that crease away, 3.4% worse)
+CHECK_SHARE = 0.8
 #: the emitting points are scaled to the spot by at most this factor (nearer the fold: there)
 MAX_SCALE = 8.0
 #: at a 3D fold, emitting pixels nearer it than this (px) are taken at this distance: the
@@ -282,9 +287,10 @@ def _thinned(points: np.ndarray, count: int) -> np.ndarray:
     return points if len(points) <= count else points[np.linspace(0, len(points) - 1, count).astype(np.int64)]
 
 
-def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray) -> dict[int, float]:
+def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, share: float = SIDE_SHARE
+               ) -> dict[int, float]:
     """The cells that touch ``line`` (a pixel within :data:`TOUCH_PX` of it within its
-    extent) with :data:`SIDE_SHARE` of their pixels and their spot on one side, the spot
+    extent) with ``share`` of their pixels and their spot on one side, the spot
     within the line's extent: cell -> side (+-1). Past a line's end (where a box's folds meet)
     a cell across its extension is across another fold."""
     side = {}
@@ -296,7 +302,7 @@ def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray) -> di
         if not np.any((np.abs(d) <= TOUCH_PX) & (u >= line.u0) & (u <= line.u1)):
             continue
         s = float(np.sign(np.median(d)))
-        if s == 0 or np.mean(np.sign(d) == s) < SIDE_SHARE or np.sign(spot_d[j]) != s:
+        if s == 0 or np.mean(np.sign(d) == s) < share or np.sign(spot_d[j]) != s:
             continue
         side[j] = s
     return side
@@ -614,7 +620,7 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
     record = []
     for line in fold_lines(barriers, spacing):
         line, offset = valley_floor(line, light, spacing)
-        side = fold_sides(line, cells, spots)
+        side, checked = fold_sides(line, cells, spots), fold_sides(line, cells, spots, CHECK_SHARE)
         frames: dict[int, np.ndarray] = {}        # this line's beams, each read once
 
         def frame(k):
@@ -622,11 +628,11 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
                 frames[k] = np.asarray(frame_of(k), np.float64)
             return frames[k]
 
-        near = [k for k in side if abs(float(line.distance(spots[k][None])[0])) <= EMITTER_SPACINGS * spacing]
+        near = [k for k in checked if abs(float(line.distance(spots[k][None])[0])) <= EMITTER_SPACINGS * spacing]
         votes = [v for v in (is_flatland(line, frame(k), spots[k], lit) for k in near[:5]) if v is not None]
         flatland = bool(votes) and float(np.mean(votes)) > 0.5
         used = bool(votes) and (flatland or solid)
-        miss = homogeneity_miss(line, cells, spots, spacing, frame, flatland, side, facet) if used else None
+        miss = homogeneity_miss(line, cells, spots, spacing, frame, flatland, checked, facet) if used else None
         found = cross_fold_corrections(line, cells, spots, spacing, frame, flatland, side, facet, emission=light) \
             if miss is not None and miss <= MAX_MISS else {}
         for key, value in found.items():      # a pair beside two folds (a corner): the longer line's

@@ -287,13 +287,12 @@ def _thinned(points: np.ndarray, count: int) -> np.ndarray:
     return points if len(points) <= count else points[np.linspace(0, len(points) - 1, count).astype(np.int64)]
 
 
-def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, share: float = SIDE_SHARE
-               ) -> dict[int, float]:
+def side_shares(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray) -> dict[int, tuple[float, float]]:
     """The cells that touch ``line`` (a pixel within :data:`TOUCH_PX` of it within its
-    extent) with ``share`` of their pixels and their spot on one side, the spot
-    within the line's extent: cell -> side (+-1). Past a line's end (where a box's folds meet)
-    a cell across its extension is across another fold."""
-    side = {}
+    extent), their spot within the line's extent and on the side of most of their pixels:
+    cell -> (side (+-1), the share of its pixels on that side). Past a line's end (where a
+    box's folds meet) a cell across its extension is across another fold."""
+    out = {}
     spot_d, spot_u = line.distance(spots), line.along(spots)
     for j, pixels in enumerate(cells):
         if len(pixels) == 0 or not line.u0 <= spot_u[j] <= line.u1:
@@ -302,10 +301,18 @@ def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, share
         if not np.any((np.abs(d) <= TOUCH_PX) & (u >= line.u0) & (u <= line.u1)):
             continue
         s = float(np.sign(np.median(d)))
-        if s == 0 or np.mean(np.sign(d) == s) < share or np.sign(spot_d[j]) != s:
+        if s == 0 or np.sign(spot_d[j]) != s:
             continue
-        side[j] = s
-    return side
+        out[j] = (s, float(np.mean(np.sign(d) == s)))
+    return out
+
+
+def fold_sides(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, share: float = SIDE_SHARE,
+               shares: dict[int, tuple[float, float]] | None = None) -> dict[int, float]:
+    """The cells of :func:`side_shares` (given as ``shares``, or found) with ``share`` of
+    their pixels on their side: cell -> side (+-1)."""
+    shares = side_shares(line, cells, spots) if shares is None else shares
+    return {j: s for j, (s, q) in shares.items() if q >= share}
 
 
 def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.ndarray, receiving: np.ndarray,
@@ -620,7 +627,9 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
     record = []
     for line in fold_lines(barriers, spacing):
         line, offset = valley_floor(line, light, spacing)
-        side, checked = fold_sides(line, cells, spots), fold_sides(line, cells, spots, CHECK_SHARE)
+        shares = side_shares(line, cells, spots)     # the corrections' cells and the check's, one pass
+        side, checked = fold_sides(line, cells, spots, shares=shares), \
+            fold_sides(line, cells, spots, CHECK_SHARE, shares)
         frames: dict[int, np.ndarray] = {}        # this line's beams, each read once
 
         def frame(k):
@@ -670,5 +679,5 @@ def apply_corrections(T: np.ndarray, rows: np.ndarray, cols: np.ndarray, values:
 
 
 __all__ = ["FILE", "FoldLine", "apply_corrections", "cross_fold_corrections", "fold_corrections", "fold_lines",
-           "fold_sides", "homogeneity_miss", "is_flatland", "light_from", "valley_floor",
+           "fold_sides", "homogeneity_miss", "side_shares", "is_flatland", "light_from", "valley_floor",
            "write_corrections"]

@@ -274,17 +274,19 @@ def test_a_crease_cell_a_pixel_over_the_fold_is_still_a_cell_of_its_side():
     """A dense scan's crease cell: its spot 1.4 px from the fold keeps its own disc, and a
     fifth or more of its pixels lie over the line (the 4x box lattice's 507 beams: 22-28%).
     It is a cell of its side, so it sends and receives corrections (at 0.8 of its pixels it
-    was none, its bounces 2-3 16-26% short); a cell split half and half is one across the
-    fold, of neither side."""
+    was none, its bounces 2-3 16-26% short); a cell with 9 of its 21 pixels over the line is
+    none (any majority was worse). The kernel's check keeps to cells with 0.8 on one side."""
     fold = 100.5
     labels, spot, frame, line = solid_fold((128, 201), fold, (58, 70), (95, 101), (101, 107), 1.5)
     labels[labels == 1] = -1
-    labels[80:90, 98:104] = 1                               # 3 of its 6 columns over the fold: no side
-    labels[40:50, 101:106] = 3                              # 0 of 5
-    labels[20:30, 100:106] = 4                              # 1 of 6 ...
-    labels[20:24, 99] = 4                                   # ... and 4 more pixels: 14 of 64
+    labels[80:84, 99:104] = 1                               # 8 of 20 over the fold ...
+    labels[84, 100] = 1                                     # ... and one more: 9 of 21
+    labels[40:50, 101:106] = 3                              # 0 of 50
+    labels[20:30, 100:106] = 4                              # 10 of 60 ...
+    labels[20:24, 99] = 4                                   # ... and 4 more: 14 of 64
     cells = ft._cell_pixels(labels, 5)
-    spots = np.array([[96.0, 63.5], [101.9, 84.5], [0.0, 0.0], [102.9, 44.5], [101.9, 24.5]])
-    side = ft.fold_sides(line, cells, spots)
-    assert side.get(0) == 1.0 and side.get(3) == -1.0 and side.get(4) == -1.0 and 1 not in side
-    assert np.mean(line.distance(cells[4]) > 0) == pytest.approx(14 / 64)
+    spots = np.array([[96.0, 63.5], [101.9, 82.0], [0.0, 0.0], [102.9, 44.5], [101.9, 24.5]])
+    shares = ft.side_shares(line, cells, spots)
+    assert shares[1] == (-1.0, pytest.approx(12 / 21)) and shares[4] == (-1.0, pytest.approx(50 / 64))
+    assert ft.fold_sides(line, cells, spots) == {0: 1.0, 3: -1.0, 4: -1.0}
+    assert ft.fold_sides(line, cells, spots, ft.CHECK_SHARE, shares) == {0: 1.0, 3: -1.0}

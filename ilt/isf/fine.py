@@ -291,13 +291,15 @@ class FineOperator:
     """The per-cell indirect model of an ISF, ready to evaluate photos.
 
     geometry : the cells' :class:`CellGeometry`; degree : the polynomial degree;
-    coefficients : (K, m, m) float32 (a memory map), K = :func:`basis_terms`.
+    coefficients : (K, m, m) float32 (a memory map), K = :func:`basis_terms`; folds : the
+    build's fold lines, (start, end) frame-grid pixels (:func:`ilt.isf.fold_transfer.recorded_lines`).
     """
 
     path: Path
     geometry: CellGeometry
     degree: int
     coefficients: np.ndarray
+    folds: tuple = ()
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -318,7 +320,7 @@ class FineOperator:
 
         if self.degree < 1 or not self.flat_cells.any():
             return None
-        return NeighbourSlopes(self.geometry, self.flat_cells, basis)
+        return NeighbourSlopes(self.geometry, self.flat_cells, basis, self.folds)
 
     def coverage(self) -> np.ndarray:
         """(H, W) float32: 1 where a pixel's indirect light is modelled (inside a cell)."""
@@ -424,7 +426,10 @@ def load_fine(isf, t_fingerprint: str | None = None) -> tuple[FineOperator | Non
         coefficients = np.zeros((0, m, m), np.float32)
     else:
         raise FineError(f"{directory / MANIFEST}: degree {degree} unknown (known: {DEGREES})")
-    return FineOperator(directory, CellGeometry.from_labels(isf.cells, m), degree, coefficients), ""
+    from ilt.isf.fold_transfer import recorded_lines
+
+    return FineOperator(directory, CellGeometry.from_labels(isf.cells, m), degree, coefficients,
+                        tuple(recorded_lines(Path(isf.path).parent))), ""
 
 
 def frames_inputs(hdr_path: str | os.PathLike, isf_dir: str | os.PathLike) -> dict:

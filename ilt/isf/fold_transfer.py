@@ -662,6 +662,21 @@ def write_corrections(path, rows: np.ndarray, cols: np.ndarray, values: np.ndarr
     scipy.sparse.save_npz(path, scipy.sparse.coo_matrix((values, (rows, cols)), shape=(m, m)).tocsc())
 
 
+def recorded_lines(isf_dir) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The fold lines a build found (its manifest's ``fold_transfer.lines``), as (start, end)
+    frame-grid pixels; none when the build had none, or no fold transfer. Every line, whether
+    or not the light across it was corrected: a line the build could not check is still the
+    barriers' fold."""
+    from ilt.io.manifest import StageError, read_manifest
+
+    try:
+        lines = read_manifest(isf_dir).get("fold_transfer", {}).get("lines", [])
+    except (StageError, AttributeError, OSError):
+        return []
+    return [(np.asarray(line["from"], np.float64), np.asarray(line["to"], np.float64))
+            for line in lines if isinstance(line, dict) and "from" in line and "to" in line]
+
+
 def apply_corrections(T: np.ndarray, rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> np.ndarray:
     """T (m, m), owned (changed in place and returned), with ``delta`` (entries at ``rows``,
     ``cols``, T's units) added and carried through the scene's further bounces: ``T + (T
@@ -679,5 +694,5 @@ def apply_corrections(T: np.ndarray, rows: np.ndarray, cols: np.ndarray, values:
 
 
 __all__ = ["FILE", "FoldLine", "apply_corrections", "cross_fold_corrections", "fold_corrections", "fold_lines",
-           "fold_sides", "homogeneity_miss", "side_shares", "is_flatland", "light_from", "valley_floor",
-           "write_corrections"]
+           "fold_sides", "homogeneity_miss", "side_shares", "is_flatland", "light_from", "recorded_lines",
+           "valley_floor", "write_corrections"]

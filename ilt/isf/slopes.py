@@ -20,6 +20,11 @@ design and application of upwind schemes on unstructured meshes", AIAA 89-0366):
    pixels reach half the way to its neighbours' centroids); at a peak or a valley of the
    field, and where the cell ends the light (no neighbour beyond), it is 0: the cell stays
    flat there, as before; at a jump it cannot overshoot what either side holds.
+3. **Not across a fold**: a neighbour on the far side of one of the build's fold lines
+   (:func:`ilt.isf.fold_transfer.recorded_lines`; the line between the two centroids crosses
+   it) still bounds the plane, but gives it no gradient. Indirect light peaks at a concave
+   fold from both sides and steps across it; read into the gradient, the step tilted the
+   cells beside the fold (docs/fullres.md, "Not across a fold").
 
 The plane is added about the cell's centroid in the fine basis (``dx``, ``dy`` in units of
 the cell's size, :meth:`ilt.isf.fine.CellGeometry.basis`), so it sums to zero over the
@@ -56,15 +61,32 @@ def _cone_inverses() -> np.ndarray:
 _CONES = _cone_inverses()
 
 
+def crosses(a: np.ndarray, b: np.ndarray, segments) -> np.ndarray:
+    """(e,) bool: the segment from ``a[k]`` to ``b[k]`` ((e, 2) points) crosses one of
+    ``segments`` ((start, end) pairs of points), the two ends strictly on either side."""
+    a, b = np.asarray(a, np.float64).reshape(-1, 2), np.asarray(b, np.float64).reshape(-1, 2)
+    out = np.zeros(len(a), bool)
+
+    def side(p, q, r):                        # sign of (q - p) x (r - p)
+        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+
+    for start, end in segments:
+        p, q = np.asarray(start, np.float64), np.asarray(end, np.float64)
+        out |= (side(p, q, a) * side(p, q, b) < 0) & (side(a, b, p) * side(a, b, q) < 0)
+    return out
+
+
 class NeighbourSlopes:
     """The limited least-squares slopes of flat cells (module docstring).
 
     geometry : a :class:`ilt.isf.fine.CellGeometry`; flat : (m,) bool, the cells that get
     a slope (the others get 0: theirs is in the fine coefficients); basis : its degree-1
-    basis ``dx, dy`` (2, n) when the caller has it.
+    basis ``dx, dy`` (2, n) when the caller has it; folds : (start, end) pixel pairs of the
+    scene's fold lines: a neighbour across one (the line between the two centroids crosses
+    it) bounds the plane but gives it no gradient.
     """
 
-    def __init__(self, geometry, flat: np.ndarray, basis: np.ndarray | None = None):
+    def __init__(self, geometry, flat: np.ndarray, basis: np.ndarray | None = None, folds=()):
         m, (height, width) = geometry.m, geometry.shape
         self.m, self.flat = m, np.asarray(flat, bool)
         labels = np.full(height * width, -1, np.int64)
@@ -78,6 +100,9 @@ class NeighbourSlopes:
         # both directions of every edge, only edges into a flat cell (the others' slopes are not used)
         i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
         keep = self.flat[i]
+        # the limiter's bounds: every neighbour; the gradient: the neighbours on the cell's side of every fold
+        self.bound_i, self.bound_j = i[keep], j[keep]
+        keep &= ~crosses(geometry.centre[i], geometry.centre[j], folds)
         self.i, self.j = i[keep], j[keep]
         # in the basis' units: positions over the cell's size (the gradient comes out as coefficients)
         size = geometry.size
@@ -109,15 +134,15 @@ class NeighbourSlopes:
         means = np.asarray(means, np.float64)
         c = means.shape[1]
         out = np.zeros((2, self.m, c))
-        if self.i.size == 0:
+        if self.bound_i.size == 0:
             return out
         diff = means[self.j] - means[self.i]                                        # (e, c)
         rhs = np.stack([np.stack([np.bincount(self.i, self.w * self.d[:, a] * diff[:, k], self.m)
                                   for k in range(c)], axis=1) for a in range(2)], axis=1)   # (m, 2, c)
         grad = np.einsum("mab,mbc->mac", self.A_inv, rhs)
         high, low = means.copy(), means.copy()
-        np.maximum.at(high, self.i, means[self.j])
-        np.minimum.at(low, self.i, means[self.j])
+        np.maximum.at(high, self.bound_i, means[self.bound_j])
+        np.minimum.at(low, self.bound_i, means[self.bound_j])
         up, down = self._reach(grad), self._reach(-grad)                            # above / below the mean
         with np.errstate(divide="ignore", invalid="ignore"):
             limit = np.minimum(np.where(up > 0, (high - means) / up, 1.0),
@@ -127,4 +152,4 @@ class NeighbourSlopes:
         return grad.transpose(1, 0, 2)
 
 
-__all__ = ["NeighbourSlopes", "DIRECTIONS"]
+__all__ = ["NeighbourSlopes", "DIRECTIONS", "crosses"]

@@ -30,6 +30,7 @@ from ilt.io.manifest import (
 )
 from ilt.io.staged import staged_directory
 from ilt.isf.directory import CELLS_FILE, SAMPLES_FILE, T_FILE, ISFError, load_isf
+from ilt.isf.fold_transfer import recorded_lines
 from ilt.isf.noise import T_VAR_FILE, read_entry_variance
 
 from .indicator import Placement, RefineError, place_beams
@@ -121,19 +122,12 @@ def _plan_angles(capture: Path, isf) -> tuple[str, np.ndarray, dict | None]:
 
 
 def _folds(isf_dir: Path, isf) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The build's fold lines (its manifest's ``fold_transfer.lines``, frame-grid pixels), as
-    full-resolution (start, end) pairs; none when the build had no fold transfer. Every line,
-    whether or not the light across it was corrected (``entries``): a line the build could not
-    check is still the barriers' fold. On the 4x box lattice the 48-beam builds of two draws in
-    three find the vertical crease alone, and leave it uncorrected; read, refine +48 went
+    """The build's fold lines (:func:`ilt.isf.fold_transfer.recorded_lines`) as full-resolution
+    (start, end) pairs; none when the build had no fold transfer. Every line, whether or not
+    the light across it was corrected: on the 4x box lattice the 48-beam builds of two draws
+    in three find the vertical crease alone, and leave it uncorrected; read, refine +48 went
     0.0867 / 0.0854 -> 0.0798 / 0.0808 (docs/refine.md, "The 4x box lattice")."""
-    try:
-        lines = read_manifest(isf_dir).get("fold_transfer", {}).get("lines", [])
-    except (StageError, AttributeError):
-        return []
-    return [(isf.mapping.to_full(np.asarray(line["from"], np.float64)), isf.mapping.to_full(np.asarray(line["to"],
-                                                                                                        np.float64)))
-            for line in lines if isinstance(line, dict)]
+    return [(isf.mapping.to_full(start), isf.mapping.to_full(end)) for start, end in recorded_lines(isf_dir)]
 
 
 def _covered(isf):

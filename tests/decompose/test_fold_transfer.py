@@ -16,6 +16,7 @@ from ilt.io.exr import read_exr, write_exr
 from ilt.io.manifest import write_manifest
 from ilt.isf.build import build_isf
 from ilt.isf.directory import load_isf
+from ilt.isf.fine import load_fine
 from ilt.isf.fold_transfer import FILE
 from ilt.spots.stage import run_centroids
 from ilt.sim.render import render_scene
@@ -108,6 +109,9 @@ def test_at_a_box_creases_the_light_spread_over_the_cells_splits_better(tmp_path
     record = json.loads((tmp_path / "isf" / "manifest.json").read_text())["fold_transfer"]
     assert sum(line["flatland"] is False and line["entries"] > 0 for line in record["lines"]) == 3
     isf = load_isf(tmp_path / "isf")
+    # the fine operator knows the creases (its flat cells take no slope from across one)
+    assert [(list(a), list(b)) for a, b in load_fine(isf)[0].folds] == [(line["from"], line["to"])
+                                                                      for line in record["lines"]]
     for used in (True, False):
         decompose(isf, photos, tmp_path / f"dec-{used}", n_bounces=6, fold_transfer=used)
     mask = read_exr(tmp_path / "dec-True" / "room" / "coverage.exr")[0][..., 0] == 1.0

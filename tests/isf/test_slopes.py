@@ -108,3 +108,47 @@ def test_a_row_of_strips_gets_no_slope_across_the_row():
     coefficients = NeighbourSlopes(geometry, np.ones(8, bool)).coefficients(_means(geometry, field))
     np.testing.assert_allclose(coefficients[0, 1:7, 0], 0.25 * geometry.size[1:7], rtol=1e-10)
     assert np.abs(coefficients[1]).max() < 1e-12
+
+
+def test_a_neighbour_across_a_fold_bounds_the_plane_but_gives_it_no_gradient():
+    """Analytic: light rising to a fold at x = 24 (1 + 0.2 x) and level and brighter across
+    it (20). Told the fold, every cell whose neighbours surround it on its own side gets its
+    side's field back exactly, those next to the fold too: the ramp's slope (0.2 x the cell's
+    6 px), and no slope on the level side. Not told, the step across the fold steepens the
+    ramp's last column (2.4x: 2.88 for 1.2)."""
+    labels = _grid(6, 8, 6)
+    geometry = CellGeometry.from_labels(labels, 48)
+    y, x = np.mgrid[:36, :48].astype(np.float64)
+    field = np.where(x < 24, 1.0 + 0.2 * x, 20.0)
+    means = _means(geometry, field)
+    fold = [(np.array([24.0 - 0.5, -1.0]), np.array([24.0 - 0.5, 40.0]))]   # pixel 24's left edge
+    told, blind = NeighbourSlopes(geometry, np.ones(48, bool), folds=fold), NeighbourSlopes(geometry,
+                                                                                           np.ones(48, bool))
+    rows = range(1, 5)
+    left = np.array([r * 8 + c for r in rows for c in (1, 2, 3)])      # column 3 beside the fold
+    right = np.array([r * 8 + c for r in rows for c in (4, 5, 6)])     # column 4 beside it
+    coefficients = told.coefficients(means)
+    np.testing.assert_allclose(coefficients[0, left, 0], 0.2 * 6, rtol=1e-10)
+    np.testing.assert_allclose(coefficients[:, right, 0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(coefficients[1, left, 0], 0.0, atol=1e-12)
+    rebuilt = _planes(geometry, told, means)[:, 0]
+    inside = np.isin(geometry.label, np.concatenate([left, right]))
+    np.testing.assert_allclose(rebuilt[inside], field.ravel()[geometry.inside][inside], atol=1e-12)
+    beside = np.array([r * 8 + 3 for r in rows])
+    np.testing.assert_allclose(blind.coefficients(means)[0, beside, 0], 2.88, rtol=1e-10)
+    # and the bound is still every neighbour's: light falling away across the fold (a step
+    # down to 0) leaves the column beside it, the highest of its side, flat
+    dropped = _means(geometry, np.where(x < 24, 1.0 + 0.2 * x, 0.0))
+    assert np.all(told.coefficients(dropped)[:, [r * 8 + 3 for r in rows], 0] == 0)
+
+
+def test_crosses_needs_both_ends_strictly_either_side():
+    """Segment pairs against a fold from (0, 0) to (10, 0): across, beside its end, along it,
+    touching it."""
+    from ilt.isf.slopes import crosses
+
+    fold = [((0.0, 0.0), (10.0, 0.0))]
+    a = np.array([(5, -1), (11, -1), (2, 1), (5, 0), (5, -3)], float)
+    b = np.array([(5, 1), (11, 1), (8, 1), (5, 2), (6, 3)], float)
+    assert crosses(a, b, fold).tolist() == [True, False, False, False, True]
+    assert not crosses(a, b, []).any()

@@ -662,18 +662,19 @@ def write_corrections(path, rows: np.ndarray, cols: np.ndarray, values: np.ndarr
     scipy.sparse.save_npz(path, scipy.sparse.coo_matrix((values, (rows, cols)), shape=(m, m)).tocsc())
 
 
-def recorded_lines(isf_dir) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The fold lines a build found (its manifest's ``fold_transfer.lines``), as (start, end)
-    frame-grid pixels; none when the build had none, or no fold transfer. Every line, whether
-    or not the light across it was corrected: a line the build could not check is still the
-    barriers' fold."""
+def recorded_lines(isf_dir) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """The fold lines a build found (its manifest's ``fold_transfer.lines``), as (start, end,
+    solid): frame-grid pixels, and True at a 3D fold (:func:`is_flatland` False; a flatland or
+    undecided line is False). Empty when the build had none, or no fold transfer. Every line,
+    whether or not the light across it was corrected: a line the build could not check is
+    still the barriers' fold."""
     from ilt.io.manifest import StageError, read_manifest
 
     try:
         lines = read_manifest(isf_dir).get("fold_transfer", {}).get("lines", [])
     except (StageError, AttributeError, OSError):
         return []
-    return [(np.asarray(line["from"], np.float64), np.asarray(line["to"], np.float64))
+    return [(np.asarray(line["from"], np.float64), np.asarray(line["to"], np.float64), line.get("flatland") is False)
             for line in lines if isinstance(line, dict) and "from" in line and "to" in line]
 
 

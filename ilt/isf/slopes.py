@@ -24,7 +24,11 @@ design and application of upwind schemes on unstructured meshes", AIAA 89-0366):
    (:func:`ilt.isf.fold_transfer.recorded_lines`; the line between the two centroids crosses
    it) still bounds the plane, but gives it no gradient. Indirect light peaks at a concave
    fold from both sides and steps across it; read into the gradient, the step tilted the
-   cells beside the fold (docs/fullres.md, "Not across a fold").
+   cells beside the fold. Beside a 3D fold (a crease of a room, not a flatland scene's) the
+   bounds also take in the cell's own side carried on past it, ``2 mean - (its side's
+   lowest mean)`` above and the same below: there the light still rises to the crease, and
+   a cell brighter than every neighbour of its side, bounded by them, stayed flat
+   (docs/fullres.md, "Not across a fold").
 
 The plane is added about the cell's centroid in the fine basis (``dx``, ``dy`` in units of
 the cell's size, :meth:`ilt.isf.fine.CellGeometry.basis`), so it sums to zero over the
@@ -81,9 +85,11 @@ class NeighbourSlopes:
 
     geometry : a :class:`ilt.isf.fine.CellGeometry`; flat : (m,) bool, the cells that get
     a slope (the others get 0: theirs is in the fine coefficients); basis : its degree-1
-    basis ``dx, dy`` (2, n) when the caller has it; folds : (start, end) pixel pairs of the
-    scene's fold lines: a neighbour across one (the line between the two centroids crosses
-    it) bounds the plane but gives it no gradient.
+    basis ``dx, dy`` (2, n) when the caller has it; folds : the scene's fold lines, (start,
+    end) pixel pairs, or (start, end, solid) with ``solid`` True at a 3D fold: a neighbour
+    across one (the line between the two centroids crosses it) bounds the plane but gives it no
+    gradient, and beside a 3D fold the bound also takes in the cell's own side's ramp carried
+    on past it (module docstring, 3).
     """
 
     def __init__(self, geometry, flat: np.ndarray, basis: np.ndarray | None = None, folds=()):
@@ -102,7 +108,12 @@ class NeighbourSlopes:
         keep = self.flat[i]
         # the limiter's bounds: every neighbour; the gradient: the neighbours on the cell's side of every fold
         self.bound_i, self.bound_j = i[keep], j[keep]
-        keep &= ~crosses(geometry.centre[i], geometry.centre[j], folds)
+        folds = [tuple(fold) for fold in folds]
+        across = crosses(geometry.centre[i], geometry.centre[j], [fold[:2] for fold in folds])
+        solid = crosses(geometry.centre[i], geometry.centre[j], [fold[:2] for fold in folds
+                                                                 if len(fold) > 2 and fold[2]])
+        self.beside_solid = np.bincount(i[keep & solid], minlength=m) > 0
+        keep &= ~across
         self.i, self.j = i[keep], j[keep]
         # in the basis' units: positions over the cell's size (the gradient comes out as coefficients)
         size = geometry.size
@@ -143,6 +154,13 @@ class NeighbourSlopes:
         high, low = means.copy(), means.copy()
         np.maximum.at(high, self.bound_i, means[self.bound_j])
         np.minimum.at(low, self.bound_i, means[self.bound_j])
+        if self.beside_solid.any():      # beside a 3D fold: as far again as its own side's neighbours
+            side_high, side_low = means.copy(), means.copy()
+            np.maximum.at(side_high, self.i, means[self.j])
+            np.minimum.at(side_low, self.i, means[self.j])
+            at = self.beside_solid
+            high[at] = np.maximum(high[at], 2 * means[at] - side_low[at])
+            low[at] = np.minimum(low[at], 2 * means[at] - side_high[at])
         up, down = self._reach(grad), self._reach(-grad)                            # above / below the mean
         with np.errstate(divide="ignore", invalid="ignore"):
             limit = np.minimum(np.where(up > 0, (high - means) / up, 1.0),

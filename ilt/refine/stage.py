@@ -127,7 +127,7 @@ def _folds(isf_dir: Path, isf) -> list[tuple[np.ndarray, np.ndarray]]:
     the light across it was corrected: on the 4x box lattice the 48-beam builds of two draws
     in three find the vertical crease alone, and leave it uncorrected; read, refine +48 went
     0.0867 / 0.0854 -> 0.0798 / 0.0808 (docs/refine.md, "The 4x box lattice")."""
-    return [(isf.mapping.to_full(start), isf.mapping.to_full(end)) for start, end in recorded_lines(isf_dir)]
+    return [(isf.mapping.to_full(start), isf.mapping.to_full(end)) for start, end, _ in recorded_lines(isf_dir)]
 
 
 def _covered(isf):

@@ -110,8 +110,8 @@ def test_at_a_box_creases_the_light_spread_over_the_cells_splits_better(tmp_path
     assert sum(line["flatland"] is False and line["entries"] > 0 for line in record["lines"]) == 3
     isf = load_isf(tmp_path / "isf")
     # the fine operator knows the creases (its flat cells take no slope from across one)
-    assert [(list(a), list(b)) for a, b in load_fine(isf)[0].folds] == [(line["from"], line["to"])
-                                                                      for line in record["lines"]]
+    assert [(list(a), list(b), solid) for a, b, solid in load_fine(isf)[0].folds] == [
+        (line["from"], line["to"], True) for line in record["lines"]]
     for used in (True, False):
         decompose(isf, photos, tmp_path / f"dec-{used}", n_bounces=6, fold_transfer=used)
     mask = read_exr(tmp_path / "dec-True" / "room" / "coverage.exr")[0][..., 0] == 1.0

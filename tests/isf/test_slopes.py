@@ -82,6 +82,31 @@ def test_no_plane_leaves_the_range_of_its_neighbours_means():
     sums = np.stack([np.bincount(label, rebuilt[:, k] - means[label, k], m) for k in range(2)], axis=1)
     assert np.abs(sums).max() < 1e-9
     assert np.abs(slopes.coefficients(means)).max() > 0.1        # and the planes are there
+    # a 3D fold between two columns of square cells, light rising to it on the left, noisy, and
+    # less across: a cell with a neighbour across it may reach as far again past its mean as
+    # its own side's farthest neighbour lies on the other side of it, no further
+    labels = _grid(8, 10, 6)
+    geometry = CellGeometry.from_labels(labels, 80)
+    label = geometry.label
+    y, x = np.mgrid[:48, :60].astype(np.float64)
+    means = _means(geometry, np.where(x < 30, 1.0 + 0.05 * x, 0.5) + rng.normal(0, 0.05, x.shape))
+    fold = (np.array([29.5, -1.0]), np.array([29.5, 49.0]), True)
+    folded = _planes(geometry, NeighbourSlopes(geometry, np.ones(80, bool), folds=[fold]), means)
+    pairs = set()
+    for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1], labels[1:])):
+        edge = a != b
+        pairs |= set(zip(a[edge].tolist(), b[edge].tolist())) | set(zip(b[edge].tolist(), a[edge].tolist()))
+    side = lambda i, j: (i % 10 < 5) == (j % 10 < 5)
+    high, low = means.copy(), means.copy()
+    for i, j in pairs:
+        high[i], low[i] = np.maximum(high[i], means[j]), np.minimum(low[i], means[j])
+    wide_high, wide_low = high.copy(), low.copy()
+    for i in {i for i, j in pairs if not side(i, j)}:
+        same = [j for a, j in pairs if a == i and side(i, j)]
+        wide_high[i] = np.maximum(high[i], 2 * means[i] - np.min([means[i], *means[same]], axis=0))
+        wide_low[i] = np.minimum(low[i], 2 * means[i] - np.max([means[i], *means[same]], axis=0))
+    assert np.all(folded <= wide_high[label] + 1e-12) and np.all(folded >= wide_low[label] - 1e-12)
+    assert (folded > high[label] + 0.05).any()                     # and the cells beside the fold use it
 
 
 def test_a_peak_stays_flat_and_sloped_cells_keep_their_own():
@@ -136,10 +161,15 @@ def test_a_neighbour_across_a_fold_bounds_the_plane_but_gives_it_no_gradient():
     np.testing.assert_allclose(rebuilt[inside], field.ravel()[geometry.inside][inside], atol=1e-12)
     beside = np.array([r * 8 + 3 for r in rows])
     np.testing.assert_allclose(blind.coefficients(means)[0, beside, 0], 2.88, rtol=1e-10)
-    # and the bound is still every neighbour's: light falling away across the fold (a step
-    # down to 0) leaves the column beside it, the highest of its side, flat
+    # and the bound is still every neighbour's: light falling away across a flatland fold (a
+    # step down to 0) leaves the column beside it, the highest of its side, flat; beside a 3D
+    # fold the bound takes in its own side's ramp carried on, and that column gets the ramp whole
     dropped = _means(geometry, np.where(x < 24, 1.0 + 0.2 * x, 0.0))
-    assert np.all(told.coefficients(dropped)[:, [r * 8 + 3 for r in rows], 0] == 0)
+    assert np.all(told.coefficients(dropped)[:, beside, 0] == 0)
+    solid = NeighbourSlopes(geometry, np.ones(48, bool), folds=[(*fold[0], True)])
+    coefficients = solid.coefficients(dropped)
+    np.testing.assert_allclose(coefficients[0, left, 0], 0.2 * 6, rtol=1e-10)
+    np.testing.assert_allclose(coefficients[1, left, 0], 0.0, atol=1e-12)
 
 
 def test_crosses_needs_both_ends_strictly_either_side():

@@ -114,6 +114,14 @@ PLACEMENT_PX = 0.25
 #: a line's kernel is checked on this many pairs of beams (:func:`homogeneity_miss`), and the
 #: line is no fold of two planes where it misses by more than this share
 CHECKS, MAX_MISS = 6, 0.5
+#: the check's front beam stands at least this far (px) from the fold: a spot nearer has its own
+#: light over it (its disc is 3 px, :func:`ilt.isf.folds.fold_cells`), and its frame scaled 6-8
+#: times about the fold read 1.5-2.3x what the beam behind sends (the 4x box lattice's 147 beams,
+#: spots 1.6 px from the centre crease: it missed by 0.64 / 0.74 on two draws of three at 2e4 e-,
+#: over MAX_MISS, and went uncorrected). The next beam behind such a spot, within half a spacing
+#: along, stands in for it: the crease's misses 0.03-0.24, its 48 / 75 / 147 beams 18 / 8 / 8%
+#: better, no other scan of the lattice worse (docs/fullres.md, "The check's front beam")
+CHECK_NEAR_PX = 2.0
 #: at a 3D fold, a cell touching it sends to every cell across it with a pixel within this
 #: many spot spacings of the line and its spot within as many along it: a spot nearer the fold
 #: than its cell's pixels sends too much to the cell straight across and too little to those
@@ -575,7 +583,8 @@ def cross_fold_corrections(line: FoldLine, cells: list[np.ndarray], spots: np.nd
 def homogeneity_miss(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray, spacing: float, frame_of,
                      flatland: bool, side: dict[int, float], facet: np.ndarray | None = None) -> float | None:
     """How far the kernel's homogeneity about ``line`` misses on the scan's own frames: for
-    up to :data:`CHECKS` beams k whose cell touches the fold, the beam k' behind it on the
+    up to :data:`CHECKS` beams k whose cell touches the fold (or, where k's spot is nearer the
+    fold than :data:`CHECK_NEAR_PX`, the next beam behind it), the beam k' behind it on the
     same side (its spot 1.5 to :data:`CHECK_REACH_FLATLAND` times as far from the fold, at 3D
     folds to :data:`MAX_SCALE` times, within a spacing along it), the
     light k' sends to the cells touching the fold across from k, against what k's frame
@@ -589,19 +598,26 @@ def homogeneity_miss(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray,
     for k in side:
         if len(misses) >= CHECKS:
             break
-        bk = abs(float(spot_d[k]))
+        front, bk = k, abs(float(spot_d[k]))
+        if bk < CHECK_NEAR_PX:               # the next beam behind it stands in (CHECK_NEAR_PX)
+            nearer = [j for j in range(len(spots)) if np.sign(spot_d[j]) == side[k] and
+                      abs(float(spot_d[j])) > bk and abs(float(spot_u[j] - spot_u[k])) <= spacing / 2]
+            if not nearer:
+                continue
+            front = min(nearer, key=lambda b: abs(float(spot_d[b])))
+            bk = abs(float(spot_d[front]))
         behind = [j for j in range(len(spots)) if np.sign(spot_d[j]) == side[k] and
                   1.5 * bk <= abs(float(spot_d[j])) <= reach * bk and
-                  (flatland or abs(float(spot_u[j] - spot_u[k])) <= spacing)]
-        receivers = _receivers(line, cells, side, k, spot_u[k], spacing)
+                  (flatland or abs(float(spot_u[j] - spot_u[front])) <= spacing)]
+        receivers = _receivers(line, cells, side, k, spot_u[front], spacing)
         if not behind or not receivers:
             continue
-        j = min(behind, key=lambda b: abs(float(spot_d[b])) + abs(float(spot_u[b] - spot_u[k])))
+        j = min(behind, key=lambda b: abs(float(spot_d[b])) + abs(float(spot_u[b] - spot_u[front])))
         receiving = np.concatenate([_thinned(cells[i], MAX_RECEIVERS) for i in receivers])
         far = np.asarray(frame_of(j), np.float64)
         sent = float(map_coordinates(far, [receiving[:, 1], receiving[:, 0]], order=1).sum())
-        given = float(light_from(line, np.asarray(frame_of(k), np.float64), spots[k], spots[j][None], receiving,
-                                 flatland, facet)[0])
+        given = float(light_from(line, np.asarray(frame_of(front), np.float64), spots[front], spots[j][None],
+                                 receiving, flatland, facet)[0])
         if sent > 0:
             misses.append(abs(given / sent - 1.0))
     return float(np.median(misses)) if misses else None

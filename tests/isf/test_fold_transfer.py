@@ -290,3 +290,34 @@ def test_a_crease_cell_a_pixel_over_the_fold_is_still_a_cell_of_its_side():
     assert shares[1] == (-1.0, pytest.approx(12 / 21)) and shares[4] == (-1.0, pytest.approx(50 / 64))
     assert ft.fold_sides(line, cells, spots) == {0: 1.0, 3: -1.0, 4: -1.0}
     assert ft.fold_sides(line, cells, spots, ft.CHECK_SHARE, shares) == {0: 1.0, 3: -1.0}
+
+
+def test_the_kernels_check_takes_the_beam_behind_a_spot_that_hugs_the_fold(monkeypatch):
+    """The homogeneity check on the 3D kernel's exact frames: a spot 1.2 px from the fold whose
+    own light reaches over it (a Gaussian of sigma 1 px, 30 times the kernel's light beside the
+    fold at its peak, as a spot's flank is) makes its frame, scaled
+    about the fold for the beam behind it, miss; the next beam behind it (6 px) stands in, and
+    the check holds on the exact frames (the beam 12 px away against the one at 6)."""
+    fold, middle, shape = 100.0, 63.5, (128, 201)
+    labels = np.full(shape, -1)
+    labels[58:70, 88:100] = 0                                    # across the fold, touching it
+    labels[58:70, 100:104] = 1
+    labels[58:70, 104:109] = 2
+    labels[58:70, 109:116] = 3
+    distances = {1: 1.2, 2: 6.0, 3: 12.0}
+    spots = np.array([[94.0, middle]] + [[fold + distances[k], middle] for k in (1, 2, 3)])
+    y, x = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+
+    def frame_of(k):
+        frame = np.where(x < fold, solid(np.maximum(fold - x, 1e-9), distances[k], y - middle), 0.0)
+        if k == 1:                                              # the spot's own light over the fold
+            frame = frame + np.where(x < fold, 2.0 * np.exp(-((x - spots[1, 0]) ** 2 + (y - middle) ** 2) / 2), 0)
+        return frame
+
+    line = ft.FoldLine(np.array([fold, middle]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), -64.0, 64.0)
+    cells = ft._cell_pixels(labels, 4)
+    side = {1: -1.0, 0: 1.0}
+    miss = ft.homogeneity_miss(line, cells, spots, 10.0, frame_of, False, side)
+    assert miss < 0.1
+    monkeypatch.setattr(ft, "CHECK_NEAR_PX", 1.0)                # the hugging spot checked itself
+    assert ft.homogeneity_miss(line, cells, spots, 10.0, frame_of, False, side) > ft.MAX_MISS

@@ -292,7 +292,8 @@ class FineOperator:
 
     geometry : the cells' :class:`CellGeometry`; degree : the polynomial degree;
     coefficients : (K, m, m) float32 (a memory map), K = :func:`basis_terms`; folds : the
-    build's fold lines, (start, end) frame-grid pixels (:func:`ilt.isf.fold_transfer.recorded_lines`).
+    build's fold lines, (start, end, solid): frame-grid pixels, True at a 3D fold
+    (:func:`ilt.isf.fold_transfer.recorded_lines`).
     """
 
     path: Path

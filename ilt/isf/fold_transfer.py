@@ -330,10 +330,10 @@ def light_from(line: FoldLine, frame: np.ndarray, spot: np.ndarray, points: np.n
     ``receiving`` (r, 2) across it, from the spot's ``frame`` by the kernel's homogeneity
     (module docstring): ``(b_s / b_q)^gamma`` times the frame summed over the receiving
     pixels scaled about the fold by ``b_s / b_q`` (3D: and shifted along it). Points nearer
-    the fold than ``b_s / MAX_SCALE`` are taken there (3D: than :data:`NEAR_PX`, or the spot). ``facet`` (H, W) bool: where the
-    receiving facet is (the scan's lit pixels, bool or float32); mapped pixels outside it or
-    past the line's ends count none (3D: light past a fold's end is not the kernel's; but see
-    the symmetric read below). With ``seen`` (r,)
+    the fold than ``b_s / MAX_SCALE`` are taken there (3D: than :data:`NEAR_PX`, or the spot).
+    ``facet`` (H, W) bool: where the receiving facet is (the scan's lit pixels, bool or
+    float32); mapped pixels outside it or past the line's ends count none (3D: light past a
+    fold's end is not the kernel's; but see the symmetric read below). With ``seen`` (r,)
     weights of the receiving pixels, also returns (n,) their sums over the pixels whose mapped
     point lies within the line's ends: the point's light over the same pixels, where the
     spread's is known. At a 3D fold with ``facet``, a pair whose mapped point leaves the facet
@@ -594,18 +594,21 @@ def homogeneity_miss(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray,
     shadow's edge) misses."""
     spot_d, spot_u = line.distance(spots), line.along(spots)
     reach = CHECK_REACH_FLATLAND if flatland else MAX_SCALE
-    misses = []
+    misses, fronts = [], set()
     for k in side:
         if len(misses) >= CHECKS:
             break
         front, bk = k, abs(float(spot_d[k]))
         if bk < CHECK_NEAR_PX:               # the next beam behind it stands in (CHECK_NEAR_PX)
-            nearer = [j for j in range(len(spots)) if np.sign(spot_d[j]) == side[k] and
-                      abs(float(spot_d[j])) > bk and abs(float(spot_u[j] - spot_u[k])) <= spacing / 2]
-            if not nearer:
+            stand_ins = [j for j in range(len(spots)) if np.sign(spot_d[j]) == side[k] and
+                         abs(float(spot_d[j])) > bk and abs(float(spot_u[j] - spot_u[k])) <= spacing / 2]
+            if not stand_ins:
                 continue
-            front = min(nearer, key=lambda b: abs(float(spot_d[b])))
+            front = min(stand_ins, key=lambda b: abs(float(spot_d[b])))
             bk = abs(float(spot_d[front]))
+        if front in fronts:                  # a stand-in for two front spots is checked once
+            continue
+        fronts.add(front)
         behind = [j for j in range(len(spots)) if np.sign(spot_d[j]) == side[k] and
                   1.5 * bk <= abs(float(spot_d[j])) <= reach * bk and
                   (flatland or abs(float(spot_u[j] - spot_u[front])) <= spacing)]

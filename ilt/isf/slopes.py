@@ -72,7 +72,8 @@ def crosses(a: np.ndarray, b: np.ndarray, segments) -> np.ndarray:
     out = np.zeros(len(a), bool)
 
     def side(p, q, r):                        # sign of (q - p) x (r - p)
-        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
+                       - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
 
     for start, end in segments:
         p, q = np.asarray(start, np.float64), np.asarray(end, np.float64)
@@ -108,10 +109,13 @@ class NeighbourSlopes:
         keep = self.flat[i]
         # the limiter's bounds: every neighbour; the gradient: the neighbours on the cell's side of every fold
         self.bound_i, self.bound_j = i[keep], j[keep]
-        folds = [tuple(fold) for fold in folds]
-        across = crosses(geometry.centre[i], geometry.centre[j], [fold[:2] for fold in folds])
-        solid = crosses(geometry.centre[i], geometry.centre[j], [fold[:2] for fold in folds
-                                                                 if len(fold) > 2 and fold[2]])
+        across = np.zeros(i.size, bool)
+        solid = np.zeros(i.size, bool)        # across a 3D fold
+        for fold in folds:                     # each edge tested once a line
+            hit = crosses(geometry.centre[i], geometry.centre[j], [tuple(fold)[:2]])
+            across |= hit
+            if len(fold) > 2 and fold[2]:
+                solid |= hit
         self.beside_solid = np.bincount(i[keep & solid], minlength=m) > 0
         keep &= ~across
         self.i, self.j = i[keep], j[keep]

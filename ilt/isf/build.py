@@ -741,14 +741,14 @@ def build_isf(hdr_dir: str | os.PathLike, spots_dir: str | os.PathLike, out: str
 
 def _fold_transfer(tmp: Path, hdr, plan: list[int], on_grid: np.ndarray, labels: np.ndarray, valleys,
                    scales: np.ndarray, solid: bool, noise=None, discs=None) -> dict:
-    """``fold_transfer.npz`` (:mod:`ilt.isf.fold_transfer`) from the folds' barriers and far
-    light (``valleys``, :func:`_fold_cells`), at 3D folds too when ``solid``; the manifest's record.
+    """``fold_transfer.npz`` (:mod:`ilt.isf.fold_transfer`) from the fold lines the cells were cut
+    at and the far light (``valleys``, :func:`_fold_cells`), at 3D folds too when ``solid``; the manifest's record.
     Each frame read again has its isolated outliers replaced (with the frames' ``noise``, each
     spot's disc of radius ``discs`` left alone), as the pass that built T did: a firefly across
     a fold would read as light the kernel sends."""
     from ilt.isf.fold_transfer import FILE, fold_corrections, write_corrections
 
-    barriers, light, spacing = valleys
+    lines, light, spacing = valleys
 
     def frame_of(k):
         frame = load_frame(hdr.files[plan[k]], hdr.frame_shape)
@@ -756,7 +756,7 @@ def _fold_transfer(tmp: Path, hdr, plan: list[int], on_grid: np.ndarray, labels:
             clamp_isolated(frame, noise, on_grid[k], float(discs[k]))
         return frame
 
-    rows, cols, values, lines = fold_corrections(labels, on_grid, barriers, light, spacing, frame_of, scales, solid)
+    rows, cols, values, lines = fold_corrections(labels, on_grid, lines, light, spacing, frame_of, scales, solid)
     write_corrections(tmp / FILE, rows, cols, values, len(plan))
     log.info("fold transfer: %d entries across %d fold lines", len(values), len(lines))
     return {"entries": int(len(values)), "lines": lines}
@@ -783,11 +783,15 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     brightest pixel), their discs tapered (:func:`ilt.isf.folds.near_chunk`), nothing
     replaced; without the sum, as without fold cells. Returns the labels, the record, the
     cells at a barrier, which keep no plane of their own (:func:`ilt.isf.folds.cells_at_barriers`;
-    None when not applied), and the barrier mask, the far light and the spot spacing that
-    :mod:`ilt.isf.fold_transfer` reads the folds from (None when not applied)."""
+    None when not applied), and the fold lines on the far light's valley floor
+    (:func:`ilt.isf.fold_transfer.floor_lines`), the far light and the spot spacing, which
+    :mod:`ilt.isf.fold_transfer` reads the light across from (None when not applied). The cells
+    end at the barriers' regions, then are cut at those lines
+    (:func:`ilt.isf.fold_transfer.cut_cells`)."""
     from ilt.isf.folds import FOLD_DEPTH, FOLD_LOW, FOLD_SIGMAS, LONG_DEPTH, LONG_DEPTH_SPACINGS, NOMINAL_ELECTRONS, \
         POCKET_CELLS, cells_at_barriers, far_chunk, far_counts, far_from_sum, fold_cells, near_chunk, nominal_noise, \
         spot_line, valley_barriers
+    from ilt.isf.fold_transfer import cut_cells, floor_lines
 
     judge = noise
     if noise is None:
@@ -829,9 +833,11 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
     barriers = valley_barriers(light, far_counts(on_grid, hdr.frame_shape, spacing, along), judge, labels >= 0, spacing,
                                valleys)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
+    lines = floor_lines(barriers, light, spacing)
+    labels, record["cut_pixels"] = cut_cells(labels, on_grid, [line for line, _ in lines])
     at_folds = cells_at_barriers(labels, barriers)
-    log.info("fold cells: %d pixels moved to the cell on their side of %d barrier pixels", record["moved_pixels"],
-             record["barrier_pixels"])
+    log.info("fold cells: %d pixels moved to the cell on their side of %d barrier pixels, %d cut at %d fold lines",
+             record["moved_pixels"], record["barrier_pixels"], record["cut_pixels"], len(lines))
     if noise is None:
         source += ", tapered from 1 to 2 spacings"
     return labels, {"applied": True, "spacing": spacing, "sigmas": FOLD_SIGMAS, "low_sigmas": FOLD_LOW,
@@ -840,7 +846,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
                     **valleys, "far_light": source, **record, "flat_cells": int(at_folds.size),
                     **({} if noise is not None else {"noise": f"nominal: noise-free frames judged as with photon "
                                                               f"noise of {NOMINAL_ELECTRONS:g} e- at their "
-                                                              f"brightest pixel"})}, at_folds, (barriers, light, spacing)
+                                                              f"brightest pixel"})}, at_folds, (lines, light, spacing)
 
 
 def _outlier_record(clamped: np.ndarray, plan: list[int]) -> dict:

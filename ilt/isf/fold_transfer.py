@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse
 from scipy.ndimage import map_coordinates
+from scipy.stats import median_abs_deviation, siegelslopes
 
 #: barrier pixels within this many px of a line belong to it (:func:`fold_lines`), in a run
 #: along it without a gap of more than this many px
@@ -111,6 +112,17 @@ MIN_RATIO = 1.2
 #: how far (px) the fold's place is uncertain: the far light's floor on noisy frames, against the
 #: M's exact folds (:func:`cross_fold_corrections`)
 PLACEMENT_PX = 0.25
+#: a pixel this far (px) or farther over a fold line from its cell's spot goes to the nearest
+#: spot on its side (:func:`cut_cells`). The Voronoi cells of spots whose rows stand offset
+#: along a crease (an uneven scan: the 4x box lattice's 507 and 675 beams) reach a pixel or two
+#: over it, and those pixels took the other face's light: noise-free, 0.0352 / 0.0331 ->
+#: 0.0334 / 0.0328 (0.5 px: 0.0338 / 0.0328; 0, which cuts at spots on the line, 0.0369 /
+#: 0.0326, and 0.0346 at 432 beams, which 0.25 leaves as it was)
+CUT_MARGIN_PX = 0.25
+#: ... or this many times the line's placement error where that is more (:func:`cut_cells`): the
+#: 2x box lattice's 432 beams at 2e4 e- read floors scattered by a pixel along its creases
+#: (placement 0.2-0.3 px), the 4x lattice's creases 0.1 px or less (placement 0.01-0.03)
+PLACEMENT_SPREAD = 2.0
 #: a line's kernel is checked on this many pairs of beams (:func:`homogeneity_miss`), and the
 #: line is no fold of two planes where it misses by more than this share
 CHECKS, MAX_MISS = 6, 0.5
@@ -140,13 +152,16 @@ FILE = "fold_transfer.npz"
 @dataclass(frozen=True)
 class FoldLine:
     """A straight fold in the frame: ``centre`` (x, y), unit ``direction`` and ``normal``,
-    and its extent ``u0 .. u1`` along the direction from the centre (px)."""
+    and its extent ``u0 .. u1`` along the direction from the centre (px). ``placement``: how
+    far (px) its place is uncertain where it was turned onto the valley floor (the standard
+    error of the floors' fit, :func:`valley_floor`), else infinite."""
 
     centre: np.ndarray
     direction: np.ndarray
     normal: np.ndarray
     u0: float
     u1: float
+    placement: float = float("inf")
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(n,) signed distance (px) of (n, 2) points from the line, along its normal."""
@@ -157,7 +172,8 @@ class FoldLine:
 
     def shifted(self, offset: float) -> FoldLine:
         """The line moved ``offset`` px along its normal."""
-        return FoldLine(self.centre + offset * self.normal, self.direction, self.normal, self.u0, self.u1)
+        return FoldLine(self.centre + offset * self.normal, self.direction, self.normal, self.u0, self.u1,
+                        self.placement)
 
 
 def _longest_run(along: np.ndarray) -> np.ndarray:
@@ -225,8 +241,8 @@ def valley_floor(line: FoldLine, light: np.ndarray, spacing: float) -> tuple[Fol
     centre: along stretches of :data:`FLOOR_SPACINGS` spot spacings (4 px at least), the light
     averaged along the stretch at offsets across the line (tenths of a pixel, within
     :data:`VALLEY_REACH` spacings), and where it is least (:func:`_floor`); a line fitted
-    through those floors (a line of fewer than :data:`MIN_STRETCHES` only moved, to its whole
-    length's floor: two or three noisy floors would turn it). The barrier pixels wander by a
+    through those floors by repeated medians (a line of fewer than :data:`MIN_STRETCHES` only
+    moved, to its whole length's floor: two or three noisy floors would turn it). The barrier pixels wander by a
     pixel with the noise and the valley test's smoothing: a line fitted to them was 0.7 px
     askew over 32 px on the noisy M. (Where two lines fitted to the valley's arms meet was
     tried first: 0.3 px off on noise-free frames, where this is within 0.1.)"""
@@ -252,14 +268,67 @@ def valley_floor(line: FoldLine, light: np.ndarray, spacing: float) -> tuple[Fol
     if not floors:
         return line, 0.0
     centres, floors = np.array(centres), np.array(floors)
-    slope, offset = np.polyfit(centres, floors, 1) if len(centres) >= MIN_STRETCHES else (0.0, float(np.mean(floors)))
+    # repeated medians (Siegel): a stretch at a fold's end, where it meets the silhouette or another
+    # fold, can read a floor 1-1.4 px off, and least squares turned the whole line by it
+    placement = float("inf")
+    if len(centres) >= MIN_STRETCHES:
+        slope, offset = siegelslopes(floors, centres)
+        placement = float(median_abs_deviation(floors - slope * centres - offset, scale="normal")
+                          / np.sqrt(len(floors)))
+    else:
+        slope, offset = 0.0, float(np.mean(floors))
     direction = line.direction + slope * line.normal
     direction /= np.hypot(*direction)
     normal = np.array([-direction[1], direction[0]])
     if normal @ line.normal < 0:
         normal = -normal
-    return FoldLine(line.centre + offset * line.normal, direction, normal, line.u0, line.u1), \
+    return FoldLine(line.centre + offset * line.normal, direction, normal, line.u0, line.u1, placement), \
         float(offset)
+
+
+def floor_lines(barriers: np.ndarray, light: np.ndarray, spacing: float) -> list[tuple[FoldLine, float]]:
+    """The barriers' fold lines (:func:`fold_lines`), each on the far light's valley floor, and
+    its move there (:func:`valley_floor`). build-isf finds them once: its cells are cut at them
+    (:func:`cut_cells`) and their light across corrected (:func:`fold_corrections`)."""
+    return [valley_floor(line, light, spacing) for line in fold_lines(barriers, spacing)]
+
+
+def cut_cells(labels: np.ndarray, spots: np.ndarray, lines: list[FoldLine], margin: float = CUT_MARGIN_PX
+              ) -> tuple[np.ndarray, int]:
+    """The cells (H, W labels, -1 outside) cut at the fold ``lines`` turned onto the valley
+    floor (:func:`valley_floor`; a line only moved, through fewer than :data:`MIN_STRETCHES`
+    floors, cuts none: on the 4x box lattice's 48 beams at 2e4 e- such a line lay half a pixel
+    off): a lit pixel within a line's extent that lies ``margin`` px or more over it from its
+    cell's spot, or :data:`PLACEMENT_SPREAD` times the line's ``placement`` where that is more
+    (the spot as far from it too, within the extent), goes to the nearest spot on its side. Returns the labels (a copy) and how many pixels moved. The barriers
+    (:func:`ilt.isf.folds.fold_cells`) end the cells where they close a region, and the
+    valley test's ridge wanders by a pixel; the line on the valley floor is straight and
+    placed to a tenth of a pixel (:data:`CUT_MARGIN_PX`)."""
+    from scipy.spatial import cKDTree
+
+    out = labels.copy()
+    flat = out.reshape(-1)
+    lit = np.flatnonzero(flat >= 0)
+    width = labels.shape[1]
+    xy = np.column_stack([lit % width, lit // width]).astype(np.float64)
+    spots = np.asarray(spots, np.float64)
+    moved = 0
+    for line in lines:
+        if not np.isfinite(line.placement):
+            continue
+        reach = max(margin, PLACEMENT_SPREAD * line.placement)
+        spot_d, spot_u = line.distance(spots), line.along(spots)
+        d, u = line.distance(xy), line.along(xy)
+        own = flat[lit]
+        over = (u >= line.u0) & (u <= line.u1) & (np.abs(d) >= reach) & (np.sign(d) != np.sign(spot_d[own])) \
+            & (np.abs(spot_d[own]) >= reach) & (spot_u[own] >= line.u0) & (spot_u[own] <= line.u1)
+        for side in (-1.0, 1.0):
+            pixels = np.flatnonzero(over & (np.sign(d) == side))
+            mine = np.flatnonzero((np.sign(spot_d) == side) & (np.abs(spot_d) >= reach))
+            if pixels.size and mine.size:
+                flat[lit[pixels]] = mine[cKDTree(spots[mine]).query(xy[pixels])[1]]
+                moved += int(pixels.size)
+    return out, moved
 
 
 def is_flatland(line: FoldLine, frame: np.ndarray, spot: np.ndarray, lit: np.ndarray) -> bool | None:
@@ -626,12 +695,13 @@ def homogeneity_miss(line: FoldLine, cells: list[np.ndarray], spots: np.ndarray,
     return float(np.median(misses)) if misses else None
 
 
-def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray, light: np.ndarray,
-                     spacing: float, frame_of, scales: np.ndarray, solid: bool = False):
+def fold_corrections(labels: np.ndarray, spots: np.ndarray, lines: list[tuple[FoldLine, float]],
+                     light: np.ndarray, spacing: float, frame_of, scales: np.ndarray, solid: bool = False):
     """Every fold's corrections: ``(rows, cols, values, record)``, values in T's units
     (frame units over each column's scale), for the cells ``labels`` (H, W; -1 outside),
-    the spots (m, 2) on the cells' grid, the barrier mask and far light of
-    :mod:`ilt.isf.folds`, and ``frame_of(k)`` beam k's frame. The record: per line its
+    the spots (m, 2) on the cells' grid, the fold lines on the valley floor and their moves
+    (:func:`floor_lines`), the far light of :mod:`ilt.isf.folds`, and ``frame_of(k)`` beam
+    k's frame. The record: per line its
     ends, its move to the valley floor, flatland or 3D, how far the kernel's homogeneity
     misses on its frames (:func:`homogeneity_miss`; a line missing by more than
     :data:`MAX_MISS`, or that cannot be checked, gives nothing) and the entries it gave.
@@ -644,8 +714,7 @@ def fold_corrections(labels: np.ndarray, spots: np.ndarray, barriers: np.ndarray
     facet = lit.astype(np.float32)       # the lit mask as map_coordinates reads it, made once
     entries: dict[tuple[int, int], float] = {}
     record = []
-    for line in fold_lines(barriers, spacing):
-        line, offset = valley_floor(line, light, spacing)
+    for line, offset in lines:
         shares = side_shares(line, cells, spots)     # the corrections' cells and the check's, one pass
         side, checked = fold_sides(line, cells, spots, shares=shares), \
             fold_sides(line, cells, spots, CHECK_SHARE, shares)
@@ -713,6 +782,6 @@ def apply_corrections(T: np.ndarray, rows: np.ndarray, cols: np.ndarray, values:
     return T
 
 
-__all__ = ["FILE", "FoldLine", "apply_corrections", "cross_fold_corrections", "fold_corrections", "fold_lines",
-           "fold_sides", "homogeneity_miss", "side_shares", "is_flatland", "light_from", "recorded_lines",
+__all__ = ["CUT_MARGIN_PX", "FILE", "FoldLine", "apply_corrections", "cross_fold_corrections", "cut_cells", "floor_lines",
+           "fold_corrections", "fold_lines", "fold_sides", "homogeneity_miss", "side_shares", "is_flatland", "light_from", "recorded_lines",
            "valley_floor", "write_corrections"]

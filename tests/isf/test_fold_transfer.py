@@ -321,3 +321,59 @@ def test_the_kernels_check_takes_the_beam_behind_a_spot_that_hugs_the_fold(monke
     assert miss < 0.1
     monkeypatch.setattr(ft, "CHECK_NEAR_PX", 1.0)                # the hugging spot checked itself
     assert ft.homogeneity_miss(line, cells, spots, 10.0, frame_of, False, side) > ft.MAX_MISS
+
+
+def test_cells_are_cut_at_a_fold_line_where_the_rows_across_stand_offset():
+    """Spots 1.4 px either side of a horizontal fold (y = 20), the rows offset by half a spacing
+    (an uneven scan): their Voronoi cells reach over the line, and cut_cells gives every pixel
+    0.25 px or more over it to the nearest spot on its own side; pixels nearer the line, past
+    its end, and the cell of a spot on the line keep their cells. A line not turned onto the
+    valley floor (placed to half a pixel) cuts nothing."""
+    from scipy.spatial import cKDTree
+
+    height, width, fold = 40, 60, 20.0
+    above = [(x, fold - 1.4) for x in np.arange(2.0, 40.0, 8.0)]
+    below = [(x, fold + 1.4) for x in np.arange(6.0, 40.0, 8.0)]
+    spots = np.array(above + below + [(50.0, fold + 0.1)])      # the last: on the line, past nothing
+    ys, xs = np.mgrid[:height, :width]
+    labels = cKDTree(spots).query(np.column_stack([xs.ravel(), ys.ravel()]))[1].reshape(height, width)
+    line = ft.FoldLine(np.array([20.0, fold]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), -20.0, 36.0, placement=0.05)
+    cut, moved = ft.cut_cells(labels, spots, [line])
+    unturned = ft.FoldLine(line.centre, line.direction, line.normal, line.u0, line.u1)
+    same, none = ft.cut_cells(labels, spots, [unturned])
+    assert none == 0 and np.array_equal(same, labels)       # a line only moved onto the floor cuts nothing
+
+    d = ys - fold
+    spot_side = np.sign(spots[:, 1] - fold)
+    within = (xs <= 56) & (np.abs(d) >= ft.CUT_MARGIN_PX) & (cut != len(spots) - 1)
+    over_before = within & (np.sign(d) != spot_side[labels])
+    assert over_before.sum() > 20 and moved == over_before.sum()
+    assert np.all(np.sign(d[within]) == spot_side[cut[within]])       # every such pixel on its spot's side
+    for side, group in ((-1, np.arange(len(above))), (1, len(above) + np.arange(len(below)))):
+        sel = over_before & (np.sign(d) == side)
+        nearest = group[cKDTree(spots[group]).query(np.column_stack([xs[sel], ys[sel]]))[1]]
+        assert np.array_equal(cut[sel], nearest)
+    keep = ~over_before
+    assert np.array_equal(cut[keep], labels[keep])
+    assert np.array_equal(cut == len(spots) - 1, labels == len(spots) - 1)   # the spot on the line: its cell kept
+    loose = ft.FoldLine(line.centre, line.direction, line.normal, line.u0, line.u1, placement=0.4)
+    wide, _ = ft.cut_cells(labels, spots, [loose])          # placed to 0.4 px: only pixels 0.8 px over move
+    changed = wide != labels
+    assert changed.any() and np.all(np.abs(d[changed]) >= 2 * 0.4) and np.array_equal(wide[changed], cut[changed])
+
+
+def test_a_stretch_off_the_floor_at_the_line_s_end_does_not_turn_it():
+    """The valley of the test above with its first 12 rows' floor 1.4 px off (where a fold meets
+    the silhouette): the line still follows the floor over the rest, within 0.1 px; a least
+    squares fit through the stretches' floors was 0.22 px off at row 24 (0.11 at the far end)."""
+    rows = 96
+    y, x = np.mgrid[0:rows, 0:COLS].astype(float)
+    floor = 50.3 + 0.8 * y / (rows - 1)
+    light_floor = floor + np.where(y < 12, 1.4, 0.0)
+    light = np.minimum(np.abs(x - light_floor), 6.0) + 1.0
+    barriers = np.zeros((rows, COLS), bool)
+    barriers[np.arange(rows), np.round(floor[:, 0]).astype(int)] = True
+    moved, _ = ft.valley_floor(ft.fold_lines(barriers, spacing=8.0)[0], light, spacing=8.0)
+    for row in (24.0, 48.0, 95.0):
+        at = moved.centre + (row - moved.centre[1]) / moved.direction[1] * moved.direction
+        assert at[0] == pytest.approx(50.3 + 0.8 * row / (rows - 1), abs=0.1)

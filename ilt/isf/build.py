@@ -834,7 +834,7 @@ def _fold_cells(hdr, plan, on_grid, labels, noise, discs, executor, workers, chu
                                valleys)
     labels, record = fold_cells(labels, on_grid, barriers, spacing)
     lines = floor_lines(barriers, light, spacing)
-    labels, record["cut_pixels"] = cut_cells(labels, on_grid, [line for line, _ in lines])
+    labels, record["cut_pixels"] = cut_cells(labels, on_grid, [line for line, _ in lines], spacing)
     at_folds = cells_at_barriers(labels, barriers)
     log.info("fold cells: %d pixels moved to the cell on their side of %d barrier pixels, %d cut at %d fold lines",
              record["moved_pixels"], record["barrier_pixels"], record["cut_pixels"], len(lines))

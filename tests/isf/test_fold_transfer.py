@@ -326,38 +326,43 @@ def test_the_kernels_check_takes_the_beam_behind_a_spot_that_hugs_the_fold(monke
 def test_cells_are_cut_at_a_fold_line_where_the_rows_across_stand_offset():
     """Spots 1.4 px either side of a horizontal fold (y = 20), the rows offset by half a spacing
     (an uneven scan): their Voronoi cells reach over the line, and cut_cells gives every pixel
-    0.25 px or more over it to the nearest spot on its own side; pixels nearer the line, past
-    its end, and the cell of a spot on the line keep their cells. A line not turned onto the
-    valley floor (placed to half a pixel) cuts nothing."""
+    0.25 px or more over it to the nearest spot on its own side within a spacing; pixels nearer
+    the line, past its end or with no spot on their side within a spacing, and the cells of
+    spots nearer the line than CUT_SPOT_PX, keep their cells. A line not turned onto the valley
+    floor (placed to half a pixel) cuts nothing."""
     from scipy.spatial import cKDTree
 
-    height, width, fold = 40, 60, 20.0
+    height, width, fold, spacing = 40, 60, 20.0, 12.0
     above = [(x, fold - 1.4) for x in np.arange(2.0, 40.0, 8.0)]
     below = [(x, fold + 1.4) for x in np.arange(6.0, 40.0, 8.0)]
-    spots = np.array(above + below + [(50.0, fold + 0.1)])      # the last: on the line, past nothing
+    near = [(44.0, fold + 0.6)]                                  # 0.6 px from the line: kept whole
+    spots = np.array(above + below + near)
     ys, xs = np.mgrid[:height, :width]
     labels = cKDTree(spots).query(np.column_stack([xs.ravel(), ys.ravel()]))[1].reshape(height, width)
     line = ft.FoldLine(np.array([20.0, fold]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), -20.0, 36.0, placement=0.05)
-    cut, moved = ft.cut_cells(labels, spots, [line])
+    cut, moved = ft.cut_cells(labels, spots, [line], spacing)
     unturned = ft.FoldLine(line.centre, line.direction, line.normal, line.u0, line.u1)
-    same, none = ft.cut_cells(labels, spots, [unturned])
+    same, none = ft.cut_cells(labels, spots, [unturned], spacing)
     assert none == 0 and np.array_equal(same, labels)       # a line only moved onto the floor cuts nothing
 
     d = ys - fold
     spot_side = np.sign(spots[:, 1] - fold)
-    within = (xs <= 56) & (np.abs(d) >= ft.CUT_MARGIN_PX) & (cut != len(spots) - 1)
-    over_before = within & (np.sign(d) != spot_side[labels])
-    assert over_before.sum() > 20 and moved == over_before.sum()
-    assert np.all(np.sign(d[within]) == spot_side[cut[within]])       # every such pixel on its spot's side
+    over = (xs <= 56) & (np.abs(d) >= ft.CUT_MARGIN_PX) & (labels != len(spots) - 1) & (np.sign(d) != spot_side[labels])
+    expected = labels.copy()
     for side, group in ((-1, np.arange(len(above))), (1, len(above) + np.arange(len(below)))):
-        sel = over_before & (np.sign(d) == side)
-        nearest = group[cKDTree(spots[group]).query(np.column_stack([xs[sel], ys[sel]]))[1]]
-        assert np.array_equal(cut[sel], nearest)
-    keep = ~over_before
-    assert np.array_equal(cut[keep], labels[keep])
-    assert np.array_equal(cut == len(spots) - 1, labels == len(spots) - 1)   # the spot on the line: its cell kept
+        sel = over & (np.sign(d) == side)
+        distance, nearest = cKDTree(spots[group]).query(np.column_stack([xs[sel], ys[sel]]))
+        expected[np.flatnonzero(sel.ravel())[distance <= spacing] // width,
+                 np.flatnonzero(sel.ravel())[distance <= spacing] % width] = group[nearest[distance <= spacing]]
+    assert moved == np.count_nonzero(expected != labels) > 20
+    assert np.array_equal(cut, expected)
+    tight, fewer = ft.cut_cells(labels, spots, [line], 4.5)    # a spacing of 4.5 px: only pixels with a spot that near
+    went = tight != labels
+    assert 0 < fewer == went.sum() < moved and np.array_equal(tight[went], cut[went])
+    assert np.all(np.hypot(xs[went] - spots[tight[went], 0], ys[went] - spots[tight[went], 1]) <= 4.5)
+    assert np.array_equal(cut == len(spots) - 1, labels == len(spots) - 1)   # the spot 0.6 px off: its cell kept
     loose = ft.FoldLine(line.centre, line.direction, line.normal, line.u0, line.u1, placement=0.4)
-    wide, _ = ft.cut_cells(labels, spots, [loose])          # placed to 0.4 px: only pixels 0.8 px over move
+    wide, _ = ft.cut_cells(labels, spots, [loose], spacing)   # placed to 0.4 px: only pixels 0.8 px over move
     changed = wide != labels
     assert changed.any() and np.all(np.abs(d[changed]) >= 2 * 0.4) and np.array_equal(wide[changed], cut[changed])
 

@@ -38,9 +38,11 @@ def test_a_tethered_dslr_scan_is_the_sum_of_its_parts():
 
 def test_the_estimate_from_an_earlier_log_is_within_a_quarter_of_the_scan_it_predicts(tmp_path):
     """Shoot 8 beams on the emulated rig, then estimate the same scan from its log: the
-    estimate is within 25 % of the logged span (the defaults alone are not held to it)."""
+    estimate is within 25 % of the logged span (the defaults alone are not held to it). The
+    settle is 0.1 s a beam, so that the scan is mostly what the estimate models: at 0.02 s its
+    whole span was 0.37 s, and a loaded machine's tenth of a second outside every part failed it."""
     config = tmp_path / "rig.toml"
-    config.write_text(toml_text(ptu={"settle": 0.02}))
+    config.write_text(toml_text(ptu={"settle": 0.1}))
     runner = CliRunner()
     shot = runner.invoke(cli, ["-q", "capture", str(config), "-o", str(tmp_path / "cap")])
     assert shot.exit_code == 0, shot.output

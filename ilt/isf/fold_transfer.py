@@ -116,12 +116,13 @@ PLACEMENT_PX = 0.25
 #: spot on its side (:func:`cut_cells`). The Voronoi cells of spots whose rows stand offset
 #: along a crease (an uneven scan: the 4x box lattice's 507 and 675 beams) reach a pixel or two
 #: over it, and those pixels took the other face's light: noise-free, 0.0352 / 0.0331 ->
-#: 0.0334 / 0.0328 (0.5 px: 0.0338 / 0.0328; 0, which cuts at spots on the line, 0.0369 /
-#: 0.0326, and 0.0346 at 432 beams, which 0.25 leaves as it was)
+#: 0.0339 / 0.0321 with the limits below. Margins measured before the limits (least squares,
+#: every line, any spot): 0.25 px 0.0334 / 0.0328, 0.5 px 0.0338 / 0.0328, 0 (which cuts at
+#: spots on the line) 0.0369 / 0.0326 and 0.0346 at 432 beams, which 0.25 left as it was
 CUT_MARGIN_PX = 0.25
 #: ... or this many times the line's placement error where that is more (:func:`cut_cells`): the
 #: 2x box lattice's 432 beams at 2e4 e- read floors scattered by a pixel along its creases
-#: (placement 0.2-0.3 px), the 4x lattice's creases 0.1 px or less (placement 0.01-0.03)
+#: (placement 0.17-0.32 px, one draw), the 4x lattice's 507 beams 0.1 px (0.014-0.028)
 PLACEMENT_SPREAD = 2.0
 #: ... and only cells whose spot stands this far (px) or farther from the line are cut, or take
 #: the pixels: a spot nearer has its own light over the line. refine puts beams there (a fold's
@@ -308,10 +309,11 @@ def cut_cells(labels: np.ndarray, spots: np.ndarray, lines: list[FoldLine], spac
     cell's spot, or :data:`PLACEMENT_SPREAD` times the line's ``placement`` where that is more
     (the spot as far from it too, and :data:`CUT_SPOT_PX` at least, within the extent), goes to
     the nearest such spot on its side, if one lies within ``spacing`` (the spots' median
-    spacing) of it: past a silhouette the nearest could be 35 px away. Returns the labels (a copy) and how many pixels moved. The barriers
-    (:func:`ilt.isf.folds.fold_cells`) end the cells where they close a region, and the
-    valley test's ridge wanders by a pixel; the line on the valley floor is straight and
-    placed to a tenth of a pixel (:data:`CUT_MARGIN_PX`)."""
+    spacing) of it: past a silhouette the nearest could be 35 px away. Returns the labels (a
+    copy) and how many pixels moved. The barriers (:func:`ilt.isf.folds.fold_cells`) end the
+    cells only where they close a region, and the valley test's ridge wanders by a pixel; the
+    line on the valley floor is straight and, on dense scans, placed to a few hundredths of a
+    pixel (:data:`PLACEMENT_SPREAD`)."""
     from scipy.spatial import cKDTree
 
     out = labels.copy()

@@ -140,7 +140,9 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     :data:`LIT_LOW_SIGMAS` / ``sigmas`` of both where it touches such a pixel
     (:func:`_hysteresis`), or where the same two tests pass on the wider one-sided means
     of :data:`LIT_WIDE` (:func:`_window_means`, with the noise of their width), with the
-    holes the lit region encloses filled: the faint rim
+    holes the lit region encloses filled, and its edge peeled where it is a bright
+    silhouette's background or cut pixels (:func:`_noisy_silhouette`; ``silhouette_pixels``
+    in the returned dict counts them): the faint rim
     of the scan's light is not let in or out by the noise, so that a denser scan lights
     what a sparser one did (on the noisy M lattice of benchmarks/noisy_sweep.py the 96-beam
     scan lit 0.880 of the 48-beam scan's pixels when the fraction was a test of single
@@ -175,6 +177,7 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
     relative = fraction * float(np.median(frame_sum[rows, cols]))
     lit = frame_sum > relative
     noise = 0.0
+    trimmed = 0
     signed = np.count_nonzero(frame_sum < 0) >= 16
     if not signed:
         # no negatives (noise-free, or noise that never reads below zero): and not partly
@@ -211,7 +214,12 @@ def lit_mask(frame_sum: np.ndarray, centroids: np.ndarray, fraction: float,
                 lit |= _peak_test(np.asarray(frame_peak, np.float64), rows, cols, fraction, sigmas,
                                   noise * np.sqrt(LIT_SMOOTH**2 / (PEAK_SMOOTH**2 * beams)), beams)
             lit = binary_fill_holes(lit)
-    return lit, {"relative_threshold": relative, "noise_sigma": noise, "noise_threshold": sigmas * noise}
+            silhouette = _noisy_silhouette(lit, frame_sum if indirect is None else np.asarray(indirect, np.float64),
+                                           sigmas * noise)
+            lit &= ~silhouette
+            trimmed = int(np.count_nonzero(silhouette))
+    return lit, {"relative_threshold": relative, "noise_sigma": noise, "noise_threshold": sigmas * noise,
+                 "silhouette_pixels": trimmed}
 
 
 #: a noise-free pixel next to one with no light is on a silhouette, partly background,
@@ -244,13 +252,70 @@ def _silhouette(frame_sum: np.ndarray, indirect: np.ndarray | None = None) -> np
         return out
     if indirect is not None:
         frame_sum = np.where(dark, 0.0, indirect)
-    padded = np.pad(frame_sum, 2, constant_values=0.0)
-    rows, cols = np.divmod(edge, frame_sum.shape[1])
-    dy, dx = np.mgrid[0:5, 0:5]
-    windows = padded[rows[:, None, None] + dy, cols[:, None, None] + dx].reshape(edge.size, 25)
-    median = np.nanmedian(np.where(windows > 0, windows, np.nan), axis=1)
+    median = _window_median(np.where(frame_sum > 0, frame_sum, np.nan), edge)
     out.flat[edge] = frame_sum.flat[edge] < SILHOUETTE_SHARE * median
     return out
+
+
+#: on noisy frames, the lit region's edge is peeled (:func:`_noisy_silhouette`) this many
+#: times: the 2 px of background the lit test's 5 x 5 mean lets in past a bright edge, and
+#: the pixels the edge cuts
+SILHOUETTE_PEELS = 3
+
+
+def _noisy_silhouette(lit: np.ndarray, light: np.ndarray, threshold: float) -> np.ndarray:
+    """(H, W) bool: the pixels of the noisy lit mask ``lit`` that are partly or wholly
+    background past a silhouette, left out of the cells. A pixel at the lit region's edge
+    (next to an unlit one, 8-connected) goes where its ``light`` (the sum without the spots,
+    else the sum) is under :data:`SILHOUETTE_SHARE` of the median of the lit pixels inside
+    the edge in its 5 x 5 window, where that median is ``threshold`` or more (the lit
+    test's own, ``sigmas`` x the noise of a 5 x 5 mean: light that a 5 x 5 mean at that
+    level would light by itself); the new edge is judged again, :data:`SILHOUETTE_PEELS`
+    times in all.
+
+    The lit test judges 5 x 5 means, and at a bright silhouette they let in about 2 px of
+    background and the pixels the edge cuts. Inside a cell those took their cell's whole
+    indirect light (the photo's bound gave a background pixel's excess to the cell's other
+    pixels) and held most of the silhouette's error. Left out, they are the rim, which
+    takes the nearest cell pixel's light in the photo's own share (docs/fullres.md "The
+    rim"): right for a pixel the edge cuts, and for a whole pixel the noise took out (the
+    photo's share is then about 1), so the test takes its pixel's light as read, with no
+    margin for its noise (one sigma of margin kept 1-5% of the box's error: docs/fullres.md
+    "A noisy silhouette"). Where the light inside is under the threshold (a faint rim
+    between sparse spots, level with the pixels inside) nothing goes: a noisy pixel there
+    reads under half its neighbours' often, and without the threshold the flatland scenes'
+    sparse scans lost 1-2%; at twice it, the box kept half its gain."""
+    from scipy.ndimage import binary_dilation
+
+    lit = lit.copy()
+    out = np.zeros(lit.shape, bool)
+    for _ in range(SILHOUETTE_PEELS):
+        edge = lit & binary_dilation(~lit, np.ones((3, 3), bool))
+        idx = np.flatnonzero(edge)
+        if not idx.size:
+            break
+        median = _window_median(np.where(lit & ~edge, light, np.nan), idx)
+        # NaN (no lit pixel inside the edge in the window) stays
+        drop = (light.flat[idx] < SILHOUETTE_SHARE * median) & (median >= threshold)
+        if not drop.any():
+            break
+        lit.flat[idx[drop]] = False
+        out.flat[idx[drop]] = True
+    return out
+
+
+def _window_median(image: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """(n,) the median of ``image``'s non-NaN values in the 5 x 5 window about each flat
+    index ``idx`` (NaN where the window has none)."""
+    import warnings
+
+    padded = np.pad(image, 2, constant_values=np.nan)
+    rows, cols = np.divmod(idx, image.shape[1])
+    dy, dx = np.mgrid[0:5, 0:5]
+    windows = padded[rows[:, None, None] + dy, cols[:, None, None] + dx].reshape(idx.size, 25)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)    # all-NaN windows: NaN
+        return np.nanmedian(windows, axis=1)
 
 
 def _window_means(image: np.ndarray, size: int, corners: bool = True):

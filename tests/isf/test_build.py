@@ -208,6 +208,40 @@ def test_the_lit_test_leaves_out_what_only_noise_lights():
     assert np.array_equal(clean, truth > 0.1) and info["noise_sigma"] == 0.0
 
 
+def test_a_noisy_silhouette_leaves_out_the_background_and_the_pixels_its_edge_cuts(monkeypatch):
+    """A sum of 64 noisy frames (sigma 8 a pixel): an object of 100 a pixel on a dark
+    background, its right column cut by the edge (30% of each pixel) and its left one 80%.
+    The lit test's 5 x 5 means let in the 2 px of background about the object (about 330
+    pixels) and the cut column; peeled at the lit edge (ilt.isf.build._noisy_silhouette),
+    where a pixel holds under half the light of the lit pixels inside it, most of them go
+    (what stays is behind a speck of noise lit further out, whose own inside is dark), and
+    no whole pixel of the object nor the 80% column does. Noise-free, the dark-pixel test
+    alone (above) judges the silhouette."""
+    from scipy.ndimage import distance_transform_cdt
+
+    import ilt.isf.build as build
+
+    truth = np.zeros((80, 80))
+    truth[20:60, 20:60] = 100.0
+    truth[20:60, 59] *= 0.3
+    truth[20:60, 20] *= 0.8
+    background = truth == 0
+    near = background & (distance_transform_cdt(background, metric="chessboard") <= 2)
+    spots = np.array([[30.0, 30.0], [50.0, 50.0]])
+    for seed in range(2):
+        noisy = truth + np.random.default_rng(seed).normal(0, 8.0, truth.shape)
+        lit, info = build.lit_mask(noisy, spots, 1e-3, dark_noise=(1.0, 64))
+        with monkeypatch.context() as patch:
+            patch.setattr(build, "SILHOUETTE_PEELS", 0)
+            unpeeled, _ = build.lit_mask(noisy, spots, 1e-3, dark_noise=(1.0, 64))
+        assert unpeeled[20:60, 59].all() and (unpeeled & near).sum() >= 0.9 * near.sum()
+        assert lit[20:60, 20:59].all()                       # the object's whole pixels and the 80% column
+        assert lit[20:60, 59].mean() <= 0.3                  # the cut column (0.075-0.25 over six seeds)
+        assert (lit & near).sum() <= 0.1 * near.sum()        # the background within the mean's reach (0.02-0.08)
+        assert info["silhouette_pixels"] == np.count_nonzero(unpeeled & ~lit) and not (lit & ~unpeeled).any()
+    assert build.lit_mask(truth, spots, 1e-3)[1]["silhouette_pixels"] == 0
+
+
 def test_the_largest_frames_mean_lights_no_noise_at_the_frames_edges():
     """The peak test (peak.exr: the largest of the frames' 5 x 5 means, ilt.spots.stage) on
     200 frames of pure noise (sigma 1), judged with the noise of a 25-pixel mean: no pixel

@@ -289,7 +289,7 @@ def _noisy_silhouette(lit: np.ndarray, light: np.ndarray, threshold: float) -> n
     sparse scans lost 1-2%; at twice it, the box kept half its gain."""
     from scipy.ndimage import binary_dilation
 
-    lit = lit.copy()
+    given, lit = lit, lit.copy()
     out = np.zeros(lit.shape, bool)
     for _ in range(SILHOUETTE_PEELS):
         edge = lit & binary_dilation(~lit, np.ones((3, 3), bool))
@@ -307,7 +307,7 @@ def _noisy_silhouette(lit: np.ndarray, light: np.ndarray, threshold: float) -> n
         # an edge pixel kept while the pixels inside it went is left an island: it goes too
         from scipy.ndimage import distance_transform_cdt, label
 
-        band = distance_transform_cdt(lit | out, metric="chessboard") <= SILHOUETTE_PEELS
+        band = distance_transform_cdt(given, metric="chessboard") <= SILHOUETTE_PEELS
         parts, _ = label(lit)      # 4-connected, as the fold cells' regions are (ilt.isf.folds)
         reaching = np.zeros(int(parts.max()) + 1, bool)
         reaching[parts[lit & ~band]] = True

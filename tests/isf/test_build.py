@@ -242,6 +242,25 @@ def test_a_noisy_silhouette_leaves_out_the_background_and_the_pixels_its_edge_cu
     assert build.lit_mask(truth, spots, 1e-3)[1]["silhouette_pixels"] == 0
 
 
+def test_the_silhouettes_peel_leaves_no_island():
+    """An object (100 a pixel) with the 2 px of background a noisy lit test lets in about it,
+    one pixel of that outer ring reading 100 (noise). The peel keeps that pixel (half of the
+    pixels inside it are the object's) while it takes the background inside it: left alone it
+    would be an island of its own, which the fold cells count as a region. It goes too, and
+    exactly the ring does."""
+    from ilt.isf.build import _noisy_silhouette
+
+    light = np.zeros((40, 40))
+    light[10:30, 10:30] = 100.0
+    lit = np.zeros((40, 40), bool)
+    lit[8:32, 8:32] = True
+    light[8, 20] = 100.0
+    out = _noisy_silhouette(lit, light, 1.0)
+    object_ = np.zeros_like(lit)
+    object_[10:30, 10:30] = True
+    np.testing.assert_array_equal(out, lit & ~object_)
+
+
 def test_the_largest_frames_mean_lights_no_noise_at_the_frames_edges():
     """The peak test (peak.exr: the largest of the frames' 5 x 5 means, ilt.spots.stage) on
     200 frames of pure noise (sigma 1), judged with the noise of a 25-pixel mean: no pixel

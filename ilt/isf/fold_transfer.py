@@ -300,6 +300,29 @@ def floor_lines(barriers: np.ndarray, light: np.ndarray, spacing: float) -> list
     return [valley_floor(line, light, spacing) for line in fold_lines(barriers, spacing)]
 
 
+def to_lit_edge(line: FoldLine, lit: np.ndarray, reach: float) -> FoldLine:
+    """``line`` with each end carried on to the edge of the ``lit`` mask (H, W bool) where
+    that edge lies within ``reach`` px of it along the line (walked in half pixels; the first
+    pixel off the mask or the frame ends it), else as it was: a crease runs on to the
+    silhouette, where its valley fades (fewer far beams light it) and the line found on it
+    stops short. On the 4x box lattice under a path tracer's noise (16 samples), refine's
+    72 beams put a pair 1-2 px from the crease 3 px past the line's end: the cells there
+    straddled it, uncut, and the scan's mean error was 0.1120, no better than its 48-beam base
+    (0.1126); carried on, 0.1052. A line that ends inside the light (at a corner where three
+    faces meet, the third face's pixels lie beyond it) stays as found."""
+    height, width = lit.shape
+    ends = []
+    for end, sign in ((line.u0, -1.0), (line.u1, 1.0)):
+        for step in np.arange(0.5, reach + 0.5, 0.5):
+            x, y = line.centre + (end + sign * step) * line.direction
+            i, j = int(round(float(y))), int(round(float(x)))
+            if not (0 <= i < height and 0 <= j < width and lit[i, j]):
+                end += sign * step
+                break
+        ends.append(end)
+    return FoldLine(line.centre, line.direction, line.normal, ends[0], ends[1], line.placement)
+
+
 def cut_cells(labels: np.ndarray, spots: np.ndarray, lines: list[FoldLine], spacing: float,
               margin: float = CUT_MARGIN_PX) -> tuple[np.ndarray, int]:
     """The cells (H, W labels, -1 outside) cut at the fold ``lines`` turned onto the valley
@@ -309,7 +332,9 @@ def cut_cells(labels: np.ndarray, spots: np.ndarray, lines: list[FoldLine], spac
     cell's spot, or :data:`PLACEMENT_SPREAD` times the line's ``placement`` where that is more
     (the spot as far from it too, and :data:`CUT_SPOT_PX` at least, within the extent), goes to
     the nearest such spot on its side, if one lies within ``spacing`` (the spots' median
-    spacing) of it: past a silhouette the nearest could be 35 px away. Returns the labels (a
+    spacing) of it: past a silhouette the nearest could be 35 px away. A line's extent is
+    first carried on to the lit edge within ``spacing`` of its ends (:func:`to_lit_edge`,
+    the cells' lit pixels). Returns the labels (a
     copy) and how many pixels moved. The barriers (:func:`ilt.isf.folds.fold_cells`) end the
     cells only where they close a region, and the valley test's ridge wanders by a pixel; the
     line on the valley floor is straight and, on dense scans, placed to a few hundredths of a
@@ -323,9 +348,11 @@ def cut_cells(labels: np.ndarray, spots: np.ndarray, lines: list[FoldLine], spac
     xy = np.column_stack([lit % width, lit // width]).astype(np.float64)
     spots = np.asarray(spots, np.float64)
     moved = 0
+    lit_mask = labels >= 0
     for line in lines:
         if not np.isfinite(line.placement):
             continue
+        line = to_lit_edge(line, lit_mask, spacing)
         reach = max(margin, PLACEMENT_SPREAD * line.placement)
         spot_d, spot_u = line.distance(spots), line.along(spots)
         d, u = line.distance(xy), line.along(xy)
@@ -797,4 +824,5 @@ def apply_corrections(T: np.ndarray, rows: np.ndarray, cols: np.ndarray, values:
 
 __all__ = ["CUT_MARGIN_PX", "FILE", "FoldLine", "apply_corrections", "cross_fold_corrections", "cut_cells", "floor_lines",
            "fold_corrections", "fold_lines", "fold_sides", "homogeneity_miss", "side_shares", "is_flatland", "light_from", "recorded_lines",
+           "to_lit_edge",
            "valley_floor", "write_corrections"]

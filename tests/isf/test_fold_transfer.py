@@ -332,7 +332,7 @@ def test_cells_are_cut_at_a_fold_line_where_the_rows_across_stand_offset():
     floor (placed to half a pixel) cuts nothing."""
     from scipy.spatial import cKDTree
 
-    height, width, fold, spacing = 40, 60, 20.0, 12.0
+    height, width, fold, spacing = 40, 80, 20.0, 12.0          # the light goes on 23 px past the line's end
     above = [(x, fold - 1.4) for x in np.arange(2.0, 40.0, 8.0)]
     below = [(x, fold + 1.4) for x in np.arange(6.0, 40.0, 8.0)]
     near = [(44.0, fold + 0.6)]                                  # 0.6 px from the line: kept whole
@@ -365,6 +365,41 @@ def test_cells_are_cut_at_a_fold_line_where_the_rows_across_stand_offset():
     wide, _ = ft.cut_cells(labels, spots, [loose], spacing)   # placed to 0.4 px: only pixels 0.8 px over move
     changed = wide != labels
     assert changed.any() and np.all(np.abs(d[changed]) >= 2 * 0.4) and np.array_equal(wide[changed], cut[changed])
+
+
+def test_a_line_that_stops_short_of_the_silhouette_cuts_on_to_it():
+    """A crease's line found 4 px short of the light's edge (x = 56, the light ends at x = 60):
+    to_lit_edge carries it on to the first pixel off the light, and cut_cells then cuts the
+    cells there too (a spot 1.4 px below the fold, past the line's end, whose Voronoi cell
+    reached over it). With the light going on 23 px past the end (a corner, another face),
+    the line stays as found, and so do those cells; off the frame counts as off the light."""
+    from scipy.spatial import cKDTree
+
+    height, width, fold, spacing = 40, 80, 20.0, 12.0
+    spots = np.array([(x, fold - 4.0) for x in np.arange(4.0, 60.0, 8.0)] + [(57.5, fold + 1.4)]
+                     + [(x, fold + 4.0) for x in np.arange(8.0, 56.0, 8.0)])
+    ys, xs = np.mgrid[:height, :width]
+    labels = cKDTree(spots).query(np.column_stack([xs.ravel(), ys.ravel()]))[1].reshape(height, width)
+    lit = xs < 60
+    line = ft.FoldLine(np.array([20.0, fold]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), -20.0, 36.0, placement=0.05)
+    carried = ft.to_lit_edge(line, lit, spacing)
+    assert carried.u1 == 39.5 and carried.u0 == -21.0                # x = 59.5 (pixel 60) off the light, x = -1 off the frame
+    assert ft.to_lit_edge(line, np.ones_like(lit), spacing).u1 == line.u1   # light 23 px on: no silhouette near
+    assert ft.to_lit_edge(line, lit, 3.0).u1 == line.u1                     # the edge farther than the reach
+
+    edge = np.where(lit, labels, -1)
+    low = 7                                                           # the spot 1.4 px below, past the line's end
+    assert spots[low, 0] == 57.5 and np.any((edge == low) & (ys < fold - ft.CUT_MARGIN_PX))   # its cell reaches over
+    cut, moved = ft.cut_cells(edge, spots, [line], spacing)
+    over = (edge == low) & (ys <= fold - ft.CUT_MARGIN_PX)
+    assert moved >= over.sum() > 0 and np.all(spots[cut[over], 1] < fold)   # all now the spots above
+    went = cut != edge
+    d = ys - fold
+    assert np.array_equal(cut[~lit], edge[~lit]) and np.all(np.abs(d[went]) >= ft.CUT_MARGIN_PX)
+    assert np.all(np.sign(spots[cut[went], 1] - fold) == np.sign(d[went]))    # each to a spot on its own side
+    found = ft.FoldLine(line.centre, line.direction, line.normal, line.u0, line.u1, placement=0.05)
+    short, _ = ft.cut_cells(np.where(xs < 80, labels, -1), spots, [found], spacing)    # the light on past the end
+    assert np.array_equal(short[over], labels[over])                  # past the line's end: not cut
 
 
 def test_a_stretch_off_the_floor_at_the_line_s_end_does_not_turn_it():

@@ -397,8 +397,7 @@ def test_a_line_that_stops_short_of_the_silhouette_cuts_on_to_it():
     d = ys - fold
     assert np.array_equal(cut[~lit], edge[~lit]) and np.all(np.abs(d[went]) >= ft.CUT_MARGIN_PX)
     assert np.all(np.sign(spots[cut[went], 1] - fold) == np.sign(d[went]))    # each to a spot on its own side
-    found = ft.FoldLine(line.centre, line.direction, line.normal, line.u0, line.u1, placement=0.05)
-    short, _ = ft.cut_cells(np.where(xs < 80, labels, -1), spots, [found], spacing)    # the light on past the end
+    short, _ = ft.cut_cells(labels, spots, [line], spacing)          # the whole frame lit: the light on past the end
     assert np.array_equal(short[over], labels[over])                  # past the line's end: not cut
 
 
